@@ -1,0 +1,1 @@
+"""Trajectory optimisation: KL-constrained LQR (the GPS C-step), dual search, step adaptation."""

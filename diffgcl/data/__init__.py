@@ -1,0 +1,1 @@
+"""Demonstrations: datasets, ROS bag ingestion, synthetic Odin-like bags, system identification."""

@@ -1,0 +1,1 @@
+"""Linear-Gaussian dynamics fits: autodiff linearisation through MJX, regression with a prior."""

@@ -1,0 +1,1 @@
+"""Evaluation metrics: success, cost distances (EPIC), hull behaviour."""

@@ -1,0 +1,1 @@
+"""Global policies on observations (MDGPS)."""

@@ -1,0 +1,1 @@
+"""Simulation: MJCF loading, MJX stepping, batched rollouts, sensors and hull forces."""
