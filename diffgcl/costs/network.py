@@ -1,0 +1,263 @@
+"""The learned cost of Guided Cost Learning: ``c_φ(x, u, t) = ‖A y(x) + b‖² + w_u ‖u‖²``.
+
+``y`` is a small ReLU network on *normalised* states (Finn et al. 2016a, §5 of the design brief):
+the features ``y: [F]`` are mixed by a learned ``A: [F, F]`` and offset ``b: [F]``, so the cost is
+always non-negative and its Gauss–Newton Hessian ``l_xx = 2 JᵀAᵀAJ`` (``J = ∂y/∂x``) is PSD.
+
+Input normalisation: a running mean / variance of the states (``InputNormaliser``) lives in the
+parameters' pytree next to the network weights but is *not* trained: :func:`update_normaliser`
+merges new data into it outside the gradient, and the cost reads it through ``stop_gradient``.
+The standard deviation is floored so that a state component that never moves is not blown up.
+
+Identity features (GCL's ``[I; −I]`` initialisation): the first hidden layer starts with its
+first ``2 dX`` units equal to ``relu(z)`` and ``relu(−z)`` of the normalised state ``z``; deeper
+layers pass these units through unchanged and the feature layer recombines them, so that initially
+``y(x) = [z; random features]`` and the cost starts close to a random quadratic in ``z``. Every
+other weight starts random. This needs ``hidden[i] ≥ 2 dX`` and ``n_features ≥ dX``.
+
+Optional time input: ``t / horizon`` is appended to the network's input (unnormalised), which lets
+the cost vary along the horizon.
+
+The network is flax linen; everything outside it (``CostParams``, :class:`CostNetwork`) is plain,
+so the cost is a pure function of an explicit parameter pytree that jit/vmap/scan carry around.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from diffgcl.types import Array, CostFn, PRNGKey
+
+
+@struct.dataclass
+class InputNormaliser:
+    """Running statistics of the state: mean: [dX], var: [dX], count: scalar (samples seen)."""
+
+    mean: Array
+    var: Array
+    count: Array
+
+
+@struct.dataclass
+class CostParams:
+    """Parameters of the network cost.
+
+    net: flax parameter dict (``features`` MLP, ``A: [F, F]``, ``b: [F]``, ``log_w_u: []``) — the
+    part that the GCL update trains; norm: :class:`InputNormaliser` — updated from data only.
+    """
+
+    net: dict
+    norm: InputNormaliser
+
+
+@dataclass(frozen=True)
+class CostNetworkConfig:
+    """Shape and initialisation of the cost network.
+
+    hidden: widths of the ReLU layers of ``y`` (the paper: 2 layers of 24–52 units);
+    n_features: F, the size of ``y`` (the paper: 20–100); identity_init: GCL's ``[I; −I]`` first
+    layer; action_weight: initial ``w_u``; learn_action_weight: train ``log w_u`` with the rest;
+    time_input: append ``t / horizon`` to the input; std_floor: lower bound of the normaliser's
+    standard deviation (in the state's own units); a_scale: standard deviation of the initial
+    entries of ``A`` times ``sqrt(F)``.
+    """
+
+    hidden: tuple[int, ...] = (32, 32)
+    n_features: int = 32
+    identity_init: bool = True
+    action_weight: float = 1e-2
+    learn_action_weight: bool = True
+    time_input: bool = False
+    horizon: int = 1
+    std_floor: float = 1e-2
+    a_scale: float = 1.0
+
+
+def _identity_kernel(rows: int, cols: int, dX: int, mode: str, base_init):
+    """A kernel init that writes an identity block for the first ``dX`` state units.
+
+    mode ``"split"``: columns [0, dX) = I and [dX, 2dX) = −I on input rows [0, dX) (first layer);
+    ``"pass"``: the block [0, 2dX) × [0, 2dX) is the identity (hidden layers);
+    ``"merge"``: columns [0, dX) = rows [0, dX) minus rows [dX, 2dX) (feature layer).
+    Columns of the identity block receive nothing from other rows, so the path is exact.
+    """
+
+    def init(key, shape, dtype=jnp.float32):
+        kernel = base_init(key, shape, dtype)
+        eye = jnp.eye(dX, dtype=dtype)
+        if mode == "split":
+            kernel = kernel.at[:, : 2 * dX].set(0.0)
+            kernel = kernel.at[:dX, :dX].set(eye).at[:dX, dX : 2 * dX].set(-eye)
+        elif mode == "pass":
+            kernel = kernel.at[:, : 2 * dX].set(0.0)
+            kernel = kernel.at[: 2 * dX, : 2 * dX].set(jnp.eye(2 * dX, dtype=dtype))
+        else:
+            kernel = kernel.at[:, :dX].set(0.0)
+            kernel = kernel.at[:dX, :dX].set(eye).at[dX : 2 * dX, :dX].set(-eye)
+        return kernel
+
+    del rows, cols
+    return init
+
+
+class FeatureNetwork(nn.Module):
+    """``y(z)``: ReLU MLP from the network input ``z: [dIn]`` to features ``[n_features]``.
+
+    ``identity_dim`` > 0 switches on the identity path for the first ``identity_dim`` inputs.
+    """
+
+    hidden: Sequence[int]
+    n_features: int
+    identity_dim: int = 0
+    param_dtype: jnp.dtype = jnp.float32
+
+    @nn.compact
+    def __call__(self, z: Array) -> Array:
+        base = nn.initializers.lecun_normal()
+        h = z
+        d = self.identity_dim
+        for i, width in enumerate(self.hidden):
+            init = base
+            if d:
+                init = _identity_kernel(h.shape[-1], width, d, "split" if i == 0 else "pass", base)
+            h = nn.relu(nn.Dense(width, kernel_init=init, param_dtype=self.param_dtype)(h))
+        init = _identity_kernel(h.shape[-1], self.n_features, d, "merge", base) if d else base
+        return nn.Dense(self.n_features, kernel_init=init, param_dtype=self.param_dtype)(h)
+
+
+def init_normaliser(dX: int, dtype=jnp.float32) -> InputNormaliser:
+    """Zero mean, unit variance, no samples seen."""
+    return InputNormaliser(
+        mean=jnp.zeros(dX, dtype), var=jnp.ones(dX, dtype), count=jnp.zeros((), dtype)
+    )
+
+
+def update_normaliser(
+    norm: InputNormaliser, X: Array, mask: Array | None = None
+) -> InputNormaliser:
+    """Merge states ``X: [..., dX]`` (optionally ``mask: [...]``, 1 = use) into the running moments.
+
+    Parallel (Chan et al.) merge of the stored moments with the batch's, so the result equals the
+    moments of all data seen. The first batch replaces the initial unit variance.
+    """
+    X = X.reshape(-1, X.shape[-1])
+    w = jnp.ones(X.shape[0], X.dtype) if mask is None else mask.reshape(-1).astype(X.dtype)
+    n_b = w.sum()
+    mean_b = (w[:, None] * X).sum(0) / jnp.maximum(n_b, 1.0)
+    var_b = (w[:, None] * (X - mean_b) ** 2).sum(0) / jnp.maximum(n_b, 1.0)
+    n = norm.count + n_b
+    delta = mean_b - norm.mean
+    mean = norm.mean + delta * n_b / jnp.maximum(n, 1.0)
+    m2 = norm.var * norm.count + var_b * n_b + delta**2 * norm.count * n_b / jnp.maximum(n, 1.0)
+    var = jnp.where(n > 0, m2 / jnp.maximum(n, 1.0), norm.var)
+    return InputNormaliser(mean=mean, var=var, count=n)
+
+
+@dataclass(frozen=True)
+class CostNetwork:
+    """The cost ``c_φ`` for states of size ``dX`` and actions of size ``dU``; all methods are pure
+    functions of an explicit :class:`CostParams` and written for one ``(x, u, t)``.
+    ``param_dtype``: dtype of new parameters (float64 in the tests)."""
+
+    config: CostNetworkConfig
+    dX: int
+    dU: int
+    param_dtype: object = jnp.float32
+
+    @property
+    def _features(self) -> FeatureNetwork:
+        return FeatureNetwork(
+            hidden=self.config.hidden,
+            n_features=self.config.n_features,
+            identity_dim=self.dX if self.config.identity_init else 0,
+            param_dtype=self.param_dtype,
+        )
+
+    def _input_dim(self) -> int:
+        return self.dX + (1 if self.config.time_input else 0)
+
+    def init(self, key: PRNGKey) -> CostParams:
+        """Random parameters (identity path if configured), unit normaliser."""
+        cfg = self.config
+        too_narrow = min(cfg.hidden, default=0) < 2 * self.dX or cfg.n_features < self.dX
+        if cfg.identity_init and too_narrow:
+            raise ValueError(
+                f"identity_init needs hidden widths >= 2*dX = {2 * self.dX} and n_features >= "
+                f"dX = {self.dX}; got hidden={cfg.hidden}, n_features={cfg.n_features}"
+            )
+        key_mlp, key_a = jax.random.split(key)
+        F = cfg.n_features
+        mlp = self._features.init(key_mlp, jnp.zeros(self._input_dim(), self.param_dtype))["params"]
+        net = {
+            "features": mlp,
+            "A": cfg.a_scale / jnp.sqrt(F) * jax.random.normal(key_a, (F, F), self.param_dtype),
+            "b": jnp.zeros(F, self.param_dtype),
+            "log_w_u": jnp.log(jnp.asarray(cfg.action_weight, self.param_dtype)),
+        }
+        return CostParams(net=net, norm=init_normaliser(self.dX, self.param_dtype))
+
+    def normalise(self, params: CostParams, x: Array) -> Array:
+        """``(x − mean) / max(std, floor)`` with the statistics held constant: [dX]."""
+        norm = jax.lax.stop_gradient(params.norm)
+        std = jnp.maximum(jnp.sqrt(norm.var), self.config.std_floor)
+        return (x - norm.mean) / std
+
+    def features(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
+        """``y(x, t)``: [F]."""
+        z = self.normalise(params, x)
+        if self.config.time_input:
+            tau = jnp.asarray(t, z.dtype) / self.config.horizon
+            z = jnp.concatenate([z, tau[None]])
+        return self._features.apply({"params": params.net["features"]}, z)
+
+    def action_weight(self, params: CostParams) -> Array:
+        """``w_u`` (scalar); a constant when ``learn_action_weight`` is off."""
+        log_w = params.net["log_w_u"]
+        if not self.config.learn_action_weight:
+            log_w = jax.lax.stop_gradient(log_w)
+        return jnp.exp(log_w)
+
+    def state_residual(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
+        """``A y(x, t) + b``: [F]."""
+        return params.net["A"] @ self.features(params, x, t) + params.net["b"]
+
+    def residual(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
+        """Residual ``r: [F + dU]`` with ``c = ‖r‖²``: ``[A y(x, t) + b; sqrt(w_u) u]``.
+
+        For Gauss–Newton expansion: ``l_xx ≈ 2 J_xᵀJ_x``, ``l_uu = 2 w_u I``, ``l_ux ≈ 2 J_uᵀJ_x``.
+        """
+        return jnp.concatenate(
+            [self.state_residual(params, x, t), jnp.sqrt(self.action_weight(params)) * u]
+        )
+
+    def cost(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
+        """``c_φ(x, u, t)``: scalar."""
+        r = self.state_residual(params, x, t)
+        return r @ r + self.action_weight(params) * (u @ u)
+
+    def bind(self, params: CostParams) -> CostFn:
+        """The cost as a :data:`~diffgcl.types.CostFn` ``c(x, u, t)`` for fixed parameters."""
+        return lambda x, u, t: self.cost(params, x, u, t)
+
+    def bind_residual(self, params: CostParams):
+        """``r(x, u, t)`` for fixed parameters (``c = ‖r‖²``)."""
+        return lambda x, u, t: self.residual(params, x, u, t)
+
+    def step_costs(self, params: CostParams, X: Array, U: Array) -> Array:
+        """Per-step costs of one trajectory ``X: [T+1, dX]``, ``U: [T, dU]`` -> ``[T+1]``.
+
+        Entries 0..T−1 are ``c(x_t, u_t, t)``; entry T is the terminal ``c(x_T, 0, T)``.
+        """
+        T = U.shape[0]
+        U_full = jnp.concatenate([U, jnp.zeros((1, U.shape[1]), U.dtype)])
+        return jax.vmap(self.cost, in_axes=(None, 0, 0, 0))(params, X, U_full, jnp.arange(T + 1))
+
+    def trajectory_cost(self, params: CostParams, X: Array, U: Array) -> Array:
+        """``c_φ(τ) = Σ_t c(x_t, u_t, t) + c(x_T, 0, T)``: scalar."""
+        return self.step_costs(params, X, U).sum()
