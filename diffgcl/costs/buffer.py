@@ -1,0 +1,127 @@
+"""A fixed-capacity memory of past samples and the controllers that drew them (one condition).
+
+GCL's fusion importance weights (Finn et al. 2016a, §4.2) need every stored trajectory's density
+under every controller that contributed samples. Keeping both in ring buffers of fixed size makes
+the cost update fixed-shape and jit-able: ``S`` trajectory slots and ``Kc`` controller slots, with
+boolean masks for the slots not yet filled. Each call to :func:`buffer_add` stores one controller
+and the ``N`` trajectories it produced; when a controller slot is reused, the samples that the
+evicted controller drew are invalidated too, so that every valid sample's source is in the buffer
+(the mixture proposal is then exactly the set of controllers in the buffer). With
+``S = N · Kc`` the two rings turn together.
+
+Densities are recomputed from the stored controller parameters (``Σ_t log N(u_t; K_t x_t + k_t,
+Σ_t)``, the dynamics terms being common to all proposals), which costs ``S · Kc · T`` Gaussian
+evaluations per cost update and avoids a stale ``[S, Kc]`` table.
+
+Everything here is for one condition; vmap over conditions at the call site.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from diffgcl.types import Array, LinearGaussianController, make_controller
+
+
+@struct.dataclass
+class SampleBuffer:
+    """Ring buffers of trajectories and controllers (one condition).
+
+    X: [S, T+1, dX], U: [S, T, dU]; source: [S] int32, the controller slot that drew each sample;
+    valid: [S] bool; controllers: :class:`LinearGaussianController` with a leading [Kc] axis;
+    controller_valid: [Kc] bool; next_sample, next_controller: int32 scalars (write positions).
+    """
+
+    X: Array
+    U: Array
+    source: Array
+    valid: Array
+    controllers: LinearGaussianController
+    controller_valid: Array
+    next_sample: Array
+    next_controller: Array
+
+    @property
+    def capacity(self) -> int:
+        return self.X.shape[-3]
+
+    @property
+    def max_controllers(self) -> int:
+        return self.controller_valid.shape[-1]
+
+
+def init_buffer(
+    capacity: int, max_controllers: int, T: int, dX: int, dU: int, dtype=jnp.float32
+) -> SampleBuffer:
+    """An empty buffer: ``capacity`` trajectory slots, ``max_controllers`` controller slots."""
+    eye = jnp.broadcast_to(jnp.eye(dU, dtype=dtype), (max_controllers, T, dU, dU))
+    K = jnp.zeros((max_controllers, T, dU, dX), dtype)
+    controllers = make_controller(K, jnp.zeros((max_controllers, T, dU), dtype), eye)
+    return SampleBuffer(
+        X=jnp.zeros((capacity, T + 1, dX), dtype),
+        U=jnp.zeros((capacity, T, dU), dtype),
+        source=jnp.zeros(capacity, jnp.int32),
+        valid=jnp.zeros(capacity, bool),
+        controllers=controllers,
+        controller_valid=jnp.zeros(max_controllers, bool),
+        next_sample=jnp.zeros((), jnp.int32),
+        next_controller=jnp.zeros((), jnp.int32),
+    )
+
+
+def buffer_add(
+    buffer: SampleBuffer,
+    controller: LinearGaussianController,
+    X: Array,
+    U: Array,
+    mask: Array | None = None,
+) -> SampleBuffer:
+    """Store ``controller`` and the trajectories ``X: [N, T+1, dX]``, ``U: [N, T, dU]`` it drew.
+
+    mask: [N] bool, samples to keep (default all). N must not exceed the capacity.
+    """
+    N = X.shape[0]
+    if N > buffer.capacity:
+        raise ValueError(f"adding {N} samples to a buffer of capacity {buffer.capacity}")
+    mask = jnp.ones(N, bool) if mask is None else mask.astype(bool)
+    slot = buffer.next_controller
+    controllers = jax.tree.map(lambda c, new: c.at[slot].set(new), buffer.controllers, controller)
+    valid = buffer.valid & (buffer.source != slot)
+    idx = (buffer.next_sample + jnp.arange(N)) % buffer.capacity
+    return buffer.replace(
+        X=buffer.X.at[idx].set(X),
+        U=buffer.U.at[idx].set(U),
+        source=buffer.source.at[idx].set(slot),
+        valid=valid.at[idx].set(mask),
+        controllers=controllers,
+        controller_valid=buffer.controller_valid.at[slot].set(True),
+        next_sample=(buffer.next_sample + N) % buffer.capacity,
+        next_controller=(slot + 1) % buffer.max_controllers,
+    )
+
+
+def action_log_density(controller: LinearGaussianController, X: Array, U: Array) -> Array:
+    """``Σ_t log N(u_t; K_t x_t + k_t, Σ_t)`` of one trajectory ``X: [T+1, dX]``, ``U: [T, dU]``."""
+    mean = jnp.einsum("tij,tj->ti", controller.K, X[:-1]) + controller.k
+    # Whitened residual L⁻¹(u − μ) with cov = L Lᵀ.
+    white = jax.vmap(lambda L, r: jax.scipy.linalg.solve_triangular(L, r, lower=True))(
+        controller.chol_cov, U - mean
+    )
+    log_det = 2.0 * jnp.log(jnp.diagonal(controller.chol_cov, axis1=-2, axis2=-1)).sum()
+    dU = U.shape[-1]
+    T = U.shape[0]
+    return -0.5 * (white**2).sum() - 0.5 * log_det - 0.5 * T * dU * jnp.log(2.0 * jnp.pi)
+
+
+def controller_log_densities(buffer: SampleBuffer, X: Array, U: Array) -> Array:
+    """Log densities of one trajectory under each stored controller: [Kc] (``−inf``: empty slot)."""
+    log_q = jax.vmap(action_log_density, in_axes=(0, None, None))(buffer.controllers, X, U)
+    return jnp.where(buffer.controller_valid, log_q, -jnp.inf)
+
+
+def samples_per_controller(buffer: SampleBuffer) -> Array:
+    """Number of valid samples each controller slot contributed: [Kc]."""
+    one_hot = jax.nn.one_hot(buffer.source, buffer.max_controllers, dtype=jnp.int32)
+    return (one_hot * buffer.valid[:, None]).sum(0)

@@ -1,0 +1,336 @@
+"""Guided Cost Learning's cost update: sample-based MaxEnt IOC with fusion importance weights.
+
+Objective for one condition (Finn et al. 2016a, eq. 3–4; the seed's eq. 2.12), in the log domain::
+
+    L(φ) = 1/N Σ_demo c_φ(τ_i) + log( 1/M Σ_j z_j exp(−c_φ(τ_j)) ) + λ_lcr g_lcr + λ_mono g_mono
+
+with ``c_φ(τ) = Σ_t c(x_t, u_t, t) + c(x_T, 0, T)`` and ``log z_j = −log q(τ_j)``. The partition
+sum runs over a minibatch of stored samples and — GCL's fix for an objective that is otherwise
+unbounded in practice — the demo minibatch appended to it. Its gradient is
+``mean_demo ∂c/∂φ − Σ_j (w_j / Σ_k w_k) ∂c/∂φ(τ_j)``, ``w_j = z_j exp(−c_φ(τ_j))`` (the seed's
+eq. 2.13), so the value of ``log Z`` only needs to be right up to a constant.
+
+Fusion weights: the batch is a draw from the mixture of every proposal that produced it, so
+``q(τ) = Σ_κ π_κ q_κ(τ)`` with ``log q_κ(τ) = Σ_t log N(u_t; K^κ_t x_t + k^κ_t, Σ^κ_t)`` (dynamics
+and initial-state terms are common to every proposal and to the target, and cancel). Mixture
+weights ``π`` (``GCLConfig.mixture``):
+
+* ``"counts"`` (default, the deterministic-mixture / balance-heuristic weights): a sample minibatch
+  of size ``M_s`` drawn uniformly from the buffer is a draw from ``Σ_κ (n_κ/n) q_κ``; with ``M_d``
+  demos appended, ``π_demo = M_d / M`` and ``π_κ = (M_s / M) · n_κ / n``. With equal samples per
+  controller this is GCL's uniform average over controllers, with the demo controller weighted by
+  its share of the batch.
+* ``"uniform"``: ``log q = logmeanexp_κ log q_κ`` over the stored controllers and the demo
+  controller, as written in GCL.
+
+Without fusion (ablation) each trajectory is weighted by the density of the proposal that drew it
+alone (its own controller; the demo controller for demos).
+
+Regularisers (Finn et al. 2016a, §4.3), on the sequence of *state* costs
+``s_t = ‖A y(x_t) + b‖²``, t = 0..T (the action term is left out: i.i.d. exploration noise would
+make every sequence jagged and the penalty would fight ``w_u`` rather than shape the state cost):
+
+* local constant rate on demos and samples: ``g_lcr(τ) = Σ_t [(s_{t+1} − s_t) − (s_t − s_{t−1})]²``;
+* monotonic on demos: ``g_mono(τ) = Σ_t max(0, s_t − s_{t−1} − m)²``. Sign: demonstrations make
+  progress, so their cost should *decrease* along the trajectory; the penalty applies when the
+  cost increases by more than the slack ``m`` (GCL's form, m = 1; m < 0 demands strict decrease).
+  The GPS port's opposite sign penalised decreases, which contradicts the demos reaching a goal.
+
+Both are averaged over the trajectories they apply to. The update is optax Adam on ``params.net``
+(the input normaliser is data, not a parameter) with ``n_steps`` minibatch steps in ``lax.scan``.
+
+Pre-training: :meth:`CostLearner.pretrain` runs the same objective for ``pretrain_steps`` steps
+before the outer loop, with whatever samples the caller has at that point — in rGCL, the initial
+controller's samples (its buffer holds one controller) plus the demos in the partition. It thus
+fits the cost that best separates the demos from the initial controller's behaviour; the seed did
+one such pass before its loop.
+
+Everything is written for one condition and averaged over a leading condition axis ``C`` in the
+update (each condition has its own partition function).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from diffgcl.costs.buffer import (
+    SampleBuffer,
+    action_log_density,
+    controller_log_densities,
+    samples_per_controller,
+)
+from diffgcl.costs.network import CostNetwork, CostParams
+from diffgcl.types import Array, LinearGaussianController, PRNGKey
+
+
+@dataclass(frozen=True)
+class GCLConfig:
+    """Cost-update settings (shape-changing ones are static; all are hashable).
+
+    n_steps: Adam steps per update; pretrain_steps: steps of :meth:`CostLearner.pretrain`;
+    demo_batch / sample_batch: minibatch sizes per condition (capped at what is available);
+    learning_rate, max_grad_norm: Adam and global-norm clipping; fusion: mixture proposal (else
+    each sample's own proposal); demos_in_partition: append the demo batch to the partition term;
+    mixture: ``"counts"`` or ``"uniform"`` (see the module docstring); lcr_weight, mono_weight,
+    mono_slack: regularisers.
+    """
+
+    n_steps: int = 20
+    pretrain_steps: int = 200
+    demo_batch: int = 5
+    sample_batch: int = 10
+    learning_rate: float = 1e-3
+    max_grad_norm: float = 1e3
+    fusion: bool = True
+    demos_in_partition: bool = True
+    mixture: str = "counts"
+    lcr_weight: float = 0.0
+    mono_weight: float = 0.0
+    mono_slack: float = 1.0
+
+
+@struct.dataclass
+class WeightedSamples:
+    """Trajectories with their log proposal densities (one condition).
+
+    X: [S, T+1, dX], U: [S, T, dU], log_q: [S] (``log q(τ)``, so ``log z = −log_q``), valid: [S].
+    """
+
+    X: Array
+    U: Array
+    log_q: Array
+    valid: Array
+
+
+@struct.dataclass
+class GCLState:
+    """params: the cost's :class:`CostParams`; opt_state: Adam's state for ``params.net``;
+    step: int32 scalar, gradient steps taken."""
+
+    params: CostParams
+    opt_state: optax.OptState
+    step: Array
+
+
+@struct.dataclass
+class GCLMetrics:
+    """Per gradient step (stacked to [n_steps] by the update): loss, demo_cost (mean demo
+    trajectory cost), log_partition, lcr, mono, ess (effective sample size of the normalised
+    partition weights, averaged over conditions), grad_norm."""
+
+    loss: Array
+    demo_cost: Array
+    log_partition: Array
+    lcr: Array
+    mono: Array
+    ess: Array
+    grad_norm: Array
+
+
+def lcr_penalty(s: Array) -> Array:
+    """Local constant rate ``Σ_t [(s_{t+1} − s_t) − (s_t − s_{t−1})]²`` of ``s: [T+1]``."""
+    return jnp.sum((s[2:] - 2.0 * s[1:-1] + s[:-2]) ** 2)
+
+
+def mono_penalty(s: Array, slack: float) -> Array:
+    """Monotonic decrease ``Σ_t max(0, s_t − s_{t−1} − slack)²`` of ``s: [T+1]``."""
+    return jnp.sum(jnp.maximum(0.0, s[1:] - s[:-1] - slack) ** 2)
+
+
+def _mixture_log_weights(
+    counts: Array, n_demo_in_batch: Array, n_sample_in_batch: Array, config: GCLConfig
+) -> tuple[Array, Array]:
+    """Log mixture weights ``(log π_κ: [Kc], log π_demo: [])`` of the fusion proposal."""
+    present = counts > 0
+    if config.mixture == "uniform":
+        n_comp = present.sum() + 1.0
+        log_pi = jnp.where(present, -jnp.log(n_comp), -jnp.inf)
+        return log_pi, -jnp.log(n_comp)
+    if config.mixture != "counts":
+        raise ValueError(f"unknown mixture {config.mixture!r}; use 'counts' or 'uniform'")
+    total = n_demo_in_batch + n_sample_in_batch
+    share = counts / jnp.maximum(counts.sum(), 1) * n_sample_in_batch / total
+    log_pi = jnp.where(present, jnp.log(jnp.where(present, share, 1.0)), -jnp.inf)
+    log_pi_demo = jnp.where(n_demo_in_batch > 0, jnp.log(n_demo_in_batch / total), -jnp.inf)
+    return log_pi, log_pi_demo
+
+
+def fusion_weighted_samples(
+    buffer: SampleBuffer,
+    demo_controller: LinearGaussianController,
+    demo_X: Array,
+    demo_U: Array,
+    config: GCLConfig,
+) -> tuple[WeightedSamples, WeightedSamples]:
+    """Stored samples and demos (one condition) with their fusion log proposal densities.
+
+    demo_X: [N, T+1, dX], demo_U: [N, T, dU]. Returns ``(samples: [S], demos: [N])``. With
+    ``config.fusion`` off, each trajectory gets the density of its own proposal only.
+    """
+    N = demo_X.shape[0]
+    counts = samples_per_controller(buffer)
+    n_samples = jnp.minimum(config.sample_batch, buffer.valid.sum()).astype(demo_X.dtype)
+    n_demos = float(min(config.demo_batch, N)) if config.demos_in_partition else 0.0
+    log_pi, log_pi_demo = _mixture_log_weights(counts, jnp.asarray(n_demos), n_samples, config)
+
+    def log_proposal(X: Array, U: Array, own: Array | None) -> Array:
+        log_q_ctrl = controller_log_densities(buffer, X, U)
+        log_q_demo = action_log_density(demo_controller, X, U)
+        if not config.fusion:
+            return log_q_demo if own is None else log_q_ctrl[own]
+        terms = jnp.concatenate([log_pi + log_q_ctrl, (log_pi_demo + log_q_demo)[None]])
+        return jax.nn.logsumexp(terms)
+
+    log_q_samples = jax.vmap(log_proposal)(buffer.X, buffer.U, buffer.source)
+    log_q_demos = jax.vmap(lambda X, U: log_proposal(X, U, None))(demo_X, demo_U)
+    samples = WeightedSamples(X=buffer.X, U=buffer.U, log_q=log_q_samples, valid=buffer.valid)
+    demos = WeightedSamples(X=demo_X, U=demo_U, log_q=log_q_demos, valid=jnp.ones(N, bool))
+    return samples, demos
+
+
+def _state_and_action_costs(
+    network: CostNetwork, params: CostParams, X: Array, U: Array
+) -> tuple[Array, Array]:
+    """State costs ``s: [T+1]`` and the trajectory cost (scalar) of one trajectory."""
+    T = U.shape[0]
+    r = jax.vmap(network.state_residual, in_axes=(None, 0, 0))(params, X, jnp.arange(T + 1))
+    s = jnp.sum(r**2, axis=-1)
+    return s, s.sum() + network.action_weight(params) * jnp.sum(U**2)
+
+
+def _masked_mean(v: Array, mask: Array) -> Array:
+    return jnp.sum(jnp.where(mask, v, 0.0)) / jnp.maximum(mask.sum(), 1)
+
+
+def gcl_objective(
+    network: CostNetwork,
+    params: CostParams,
+    demos: WeightedSamples,
+    samples: WeightedSamples,
+    config: GCLConfig,
+) -> tuple[Array, GCLMetrics]:
+    """The regularised GCL objective for one condition's minibatches ``demos: [M_d]``,
+    ``samples: [M_s]``; returns ``(loss, metrics)`` (``grad_norm`` left at 0)."""
+    costs_of = jax.vmap(_state_and_action_costs, in_axes=(None, None, 0, 0))
+    s_demo, c_demo = costs_of(network, params, demos.X, demos.U)
+    s_samp, c_samp = costs_of(network, params, samples.X, samples.U)
+
+    demo_cost = _masked_mean(c_demo, demos.valid)
+    a_samp = jnp.where(samples.valid, -c_samp - samples.log_q, -jnp.inf)
+    mask = samples.valid
+    if config.demos_in_partition:
+        a_demo = jnp.where(demos.valid, -c_demo - demos.log_q, -jnp.inf)
+        a_samp = jnp.concatenate([a_samp, a_demo])
+        mask = jnp.concatenate([mask, demos.valid])
+    count = mask.sum()
+    # Safe logsumexp: an all-masked batch contributes 0 and no NaN gradient.
+    a_safe = jnp.where(mask, a_samp, jnp.finfo(c_demo.dtype).min)
+    log_partition = jnp.where(
+        count > 0, jax.nn.logsumexp(a_safe, where=mask) - jnp.log(jnp.maximum(count, 1)), 0.0
+    )
+    w = jax.nn.softmax(a_safe, where=mask)
+    w = jnp.where(mask, w, 0.0)
+    ess = 1.0 / jnp.maximum(jnp.sum(w**2), 1e-30)
+
+    lcr_all = jnp.concatenate([jax.vmap(lcr_penalty)(s_samp), jax.vmap(lcr_penalty)(s_demo)])
+    lcr = _masked_mean(lcr_all, jnp.concatenate([samples.valid, demos.valid]))
+    mono_all = jax.vmap(mono_penalty, in_axes=(0, None))(s_demo, config.mono_slack)
+    mono = _masked_mean(mono_all, demos.valid)
+
+    loss = demo_cost + log_partition + config.lcr_weight * lcr + config.mono_weight * mono
+    metrics = GCLMetrics(
+        loss=loss,
+        demo_cost=demo_cost,
+        log_partition=log_partition,
+        lcr=lcr,
+        mono=mono,
+        ess=ess,
+        grad_norm=jnp.zeros_like(loss),
+    )
+    return loss, metrics
+
+
+def _select(key: PRNGKey, valid: Array, n: int) -> tuple[Array, Array]:
+    """``n`` distinct slots drawn uniformly among ``valid: [S]`` (Gumbel top-k); returns
+    ``(idx: [n], mask: [n])`` — mask is False where fewer than n slots were valid."""
+    score = jax.random.gumbel(key, valid.shape) + jnp.where(valid, 0.0, -jnp.inf)
+    _, idx = jax.lax.top_k(score, n)
+    return idx, valid[idx]
+
+
+def _minibatch(key: PRNGKey, data: WeightedSamples, n: int) -> WeightedSamples:
+    idx, mask = _select(key, data.valid, min(n, data.valid.shape[-1]))
+    taken = jax.tree.map(lambda a: a[idx], data)
+    return taken.replace(valid=mask)
+
+
+class CostLearner(NamedTuple):
+    """``init(key) -> GCLState``, ``update(state, key, demos, samples) -> (state, metrics)`` (
+    ``config.n_steps`` steps; metrics stacked [n_steps]) and ``pretrain`` (same, with
+    ``config.pretrain_steps``). ``demos: WeightedSamples [C, N]``, ``samples: WeightedSamples
+    [C, S]`` with a leading condition axis. Pure; jit at the call site."""
+
+    init: Callable[..., GCLState]
+    update: Callable[..., tuple[GCLState, GCLMetrics]]
+    pretrain: Callable[..., tuple[GCLState, GCLMetrics]]
+    loss: Callable[..., tuple[Array, GCLMetrics]]
+
+
+def make_cost_learner(network: CostNetwork, config: GCLConfig) -> CostLearner:
+    """Build the (init, update) pair of the GCL cost update for ``network``."""
+    optimiser = optax.chain(
+        optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate)
+    )
+
+    def init(key: PRNGKey, params: CostParams | None = None) -> GCLState:
+        params = network.init(key) if params is None else params
+        return GCLState(
+            params=params, opt_state=optimiser.init(params.net), step=jnp.zeros((), jnp.int32)
+        )
+
+    def batch_loss(net: dict, norm, demos, samples) -> tuple[Array, GCLMetrics]:
+        params = CostParams(net=net, norm=norm)
+        per_condition = jax.vmap(gcl_objective, in_axes=(None, None, 0, 0, None))
+        loss, metrics = per_condition(network, params, demos, samples, config)
+        return loss.mean(), jax.tree.map(jnp.mean, metrics)
+
+    def run(state, key, demos, samples, n_steps: int):
+        C = demos.X.shape[0]
+
+        def step(state: GCLState, key: PRNGKey):
+            key_demo, key_samp = jax.random.split(key)
+            demo_batch = jax.vmap(_minibatch, in_axes=(0, 0, None))(
+                jax.random.split(key_demo, C), demos, config.demo_batch
+            )
+            samp_batch = jax.vmap(_minibatch, in_axes=(0, 0, None))(
+                jax.random.split(key_samp, C), samples, config.sample_batch
+            )
+            grads, metrics = jax.grad(batch_loss, has_aux=True)(
+                state.params.net, state.params.norm, demo_batch, samp_batch
+            )
+            updates, opt_state = optimiser.update(grads, state.opt_state, state.params.net)
+            net = optax.apply_updates(state.params.net, updates)
+            state = GCLState(
+                params=state.params.replace(net=net), opt_state=opt_state, step=state.step + 1
+            )
+            return state, metrics.replace(grad_norm=optax.global_norm(grads))
+
+        return jax.lax.scan(step, state, jax.random.split(key, n_steps))
+
+    def update(state, key, demos, samples):
+        return run(state, key, demos, samples, config.n_steps)
+
+    def pretrain(state, key, demos, samples):
+        return run(state, key, demos, samples, config.pretrain_steps)
+
+    def loss(params: CostParams, demos, samples):
+        return batch_loss(params.net, params.norm, demos, samples)
+
+    return CostLearner(init=init, update=update, pretrain=pretrain, loss=loss)
