@@ -1,0 +1,312 @@
+"""Trajectory-optimisation GPS with a known cost (GPS ``AlgorithmTrajOpt``; Levine et al. 2016).
+
+One iteration, for every condition at once:
+
+1. sample N trajectories with the current linear-Gaussian controller (time-smoothed noise);
+2. fit linear-Gaussian dynamics at the samples (autodiff through the simulator, DESIGN §3, or
+   GPS's regression with a prior);
+3. expand the cost around the samples (averaged, GPS-style) and move it to absolute coordinates;
+4. adapt the KL step from the three Laplace estimates (:mod:`diffgcl.control.step`; from the
+   second iteration on);
+5. C-step: the KL-constrained LQR with ``ε = kl_step · step_mult · T`` anchored at the controller
+   that produced the samples (:func:`diffgcl.control.dual.c_step`).
+
+:func:`make_gps` does the Python-side setup and returns pure ``init(key) -> state``,
+``iteration(state, key) -> (state, metrics)`` and ``train(key) -> (state, metrics)``, the last
+a ``lax.scan`` over iterations; ``jax.jit(jax.vmap(train))`` runs a sweep over seeds. The cost
+is a :data:`diffgcl.types.CostFn` closed over by these functions (or a residual function with
+``gauss_newton=True``); the reported "true cost" may be a different function.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+from jax import lax
+
+from diffgcl.control.dual import c_step
+from diffgcl.control.init import init_controller
+from diffgcl.control.lqr import controller_entropy, forward_pass
+from diffgcl.control.step import adapt_step_mult, laplace_cost
+from diffgcl.costs.expansion import about_origin, expand_cost_samples, trajectory_cost
+from diffgcl.types import (
+    Array,
+    CostFn,
+    Env,
+    InitialStateDistribution,
+    LinearDynamics,
+    LinearGaussianController,
+    PRNGKey,
+    QuadraticCost,
+)
+
+DYNAMICS_FITS = ("autodiff", "regression")
+
+
+@dataclass(frozen=True)
+class GPSConfig:
+    """Static settings of trajectory-optimisation GPS (defaults: GPS's box2d arm example).
+
+    iterations: GPS iterations in ``train``; num_samples: samples per condition and iteration;
+    kl_step: base KL step per time step (ε = kl_step·step_mult·T); step_mult bounds and start;
+    init_var: initial controller variance (K = 0, k = 0); init_eta: first η guess;
+    smooth_sigma: exploration-noise smoothing in steps (None: white noise); dynamics: "autodiff"
+    or "regression"; dyn_cov_floor: floor on Σ_dyn; regression_prior_strength: NIW prior weight
+    in pseudo-samples; x0_var: floor on the variance of the initial-state Gaussian; maxent: ω = 1
+    in the C-step; gauss_newton: the cost is a residual function r with c = ‖r‖²;
+    dual_max_iter: trip bound of the η search.
+    """
+
+    iterations: int = 10
+    num_samples: int = 5
+    kl_step: float = 0.2
+    min_step_mult: float = 0.01
+    max_step_mult: float = 10.0
+    init_step_mult: float = 1.0
+    init_var: float = 0.1
+    init_eta: float = 1.0
+    smooth_sigma: float | None = 2.0
+    dynamics: str = "autodiff"
+    dyn_cov_floor: float = 1e-6
+    regression_prior_strength: float = 1.0
+    x0_var: float = 1e-6
+    maxent: bool = False
+    gauss_newton: bool = False
+    dual_max_iter: int = 100
+
+    def __post_init__(self):
+        if self.dynamics not in DYNAMICS_FITS:
+            raise ValueError(
+                f"GPSConfig: dynamics {self.dynamics!r}; choose one of {DYNAMICS_FITS}"
+            )
+        if self.num_samples < 1 or self.iterations < 1:
+            raise ValueError("GPSConfig: num_samples and iterations must be positive")
+
+
+@struct.dataclass
+class GPSState:
+    """GPS state for C conditions (leading axis C on every field but ``iteration``).
+
+    controller: the controller to sample next, fields [C, T, ...]. prev_controller,
+    prev_dynamics, prev_cost (about the origin, T+1 entries), prev_x0: what the last iteration
+    sampled with and fitted (placeholders before the first iteration). step_mult, eta: [C].
+    iteration: int32 scalar, iterations done.
+    """
+
+    controller: LinearGaussianController
+    prev_controller: LinearGaussianController
+    prev_dynamics: LinearDynamics
+    prev_cost: QuadraticCost
+    prev_x0: InitialStateDistribution
+    step_mult: Array
+    eta: Array
+    iteration: Array
+
+
+@struct.dataclass
+class GPSMetrics:
+    """Per-iteration metrics, each [C] (a scan over iterations adds a leading axis).
+
+    cost: mean true cost of this iteration's samples; step_mult: the multiplier used for this
+    C-step; epsilon, eta, kl: the η search's target, result and achieved KL; entropy: action
+    entropy of the new controller (nats, summed over t); success: the new controller's noise-free
+    rollout succeeds; sample_success: fraction of this iteration's samples that succeed;
+    c_step_failed / c_step_status / c_step_iterations: the η search's report (dual.STATUS_NAMES).
+    """
+
+    cost: Array
+    step_mult: Array
+    epsilon: Array
+    eta: Array
+    kl: Array
+    entropy: Array
+    success: Array
+    sample_success: Array
+    c_step_failed: Array
+    c_step_status: Array
+    c_step_iterations: Array
+
+
+class GPS(NamedTuple):
+    """The pure functions returned by :func:`make_gps`."""
+
+    init: object
+    iteration: object
+    train: object
+
+
+def empirical_x0(X0: Array, var_floor: float) -> InitialStateDistribution:
+    """Gaussian over x0 from samples X0: [N, dX]: mean, and the per-dimension variance floored
+    (GPS's ``x0sigma`` with ``initial_state_var``)."""
+    mean = X0.mean(axis=0)
+    var = jnp.maximum(X0.var(axis=0), var_floor)
+    return InitialStateDistribution(mean=mean, cov=jnp.diag(var))
+
+
+def make_gps(
+    config: GPSConfig,
+    env: Env,
+    cost: CostFn,
+    *,
+    true_cost: CostFn | None = None,
+    x0: Array | None = None,
+) -> GPS:
+    """Set up GPS on ``env`` with ``cost``; see the module docstring.
+
+    x0: conditions [C, dX] (default ``env.initial_states()``); true_cost: the cost reported in the
+    metrics (default ``cost``; with ``gauss_newton`` a residual ``cost`` needs a ``true_cost``).
+    """
+    from diffgcl.sim.rollout import rollout_controller, sample_controller
+
+    if config.dynamics == "autodiff":
+        from diffgcl.dynamics.autodiff import fit_dynamics
+
+        def fit(X, U):
+            return fit_dynamics(env.step, X, U, cov_floor=config.dyn_cov_floor)
+    else:
+        from diffgcl.dynamics.regression import fit_dynamics_regression
+
+        def fit(X, U):
+            return fit_dynamics_regression(
+                X,
+                U,
+                prior_strength=config.regression_prior_strength,
+                cov_floor=config.dyn_cov_floor,
+            )
+
+    if true_cost is None:
+        if config.gauss_newton:
+            raise ValueError("make_gps: gauss_newton=True needs the true_cost to report")
+        true_cost = cost
+    X0 = jnp.asarray(env.initial_states() if x0 is None else x0)
+    if X0.ndim != 2 or X0.shape[1] != env.dX:
+        raise ValueError(f"make_gps: x0 must be [C, {env.dX}], got {X0.shape}")
+    C, T, dX, dU = X0.shape[0], env.horizon, env.dX, env.dU
+    N = config.num_samples
+    dtype = X0.dtype
+
+    def init(key: PRNGKey) -> GPSState:
+        del key  # the initial controller is deterministic
+        ctrl = init_controller(T, dX, dU, config.init_var, dtype=dtype)
+        ctrl = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), ctrl)
+        zeros = lambda *shape: jnp.zeros((C, *shape), dtype)
+        return GPSState(
+            controller=ctrl,
+            prev_controller=ctrl,
+            prev_dynamics=LinearDynamics(
+                A=zeros(T, dX, dX), B=zeros(T, dX, dU), c=zeros(T, dX), cov=zeros(T, dX, dX)
+            ),
+            prev_cost=QuadraticCost(
+                l=zeros(T + 1),
+                l_x=zeros(T + 1, dX),
+                l_u=zeros(T + 1, dU),
+                l_xx=zeros(T + 1, dX, dX),
+                l_uu=zeros(T + 1, dU, dU),
+                l_ux=zeros(T + 1, dU, dX),
+            ),
+            prev_x0=InitialStateDistribution(mean=X0, cov=zeros(dX, dX)),
+            step_mult=jnp.full((C,), config.init_step_mult, dtype),
+            eta=jnp.full((C,), config.init_eta, dtype),
+            iteration=jnp.zeros((), jnp.int32),
+        )
+
+    def one_condition(state_c, x0_c, key):
+        """Everything for one condition; state_c has no condition axis."""
+        ctrl, step_mult, eta = state_c["controller"], state_c["step_mult"], state_c["eta"]
+        samples = sample_controller(env, ctrl, x0_c, key, N, smooth_sigma=config.smooth_sigma)
+        X, U = samples.X, samples.U
+        dynamics = fit(X, U)
+        quad = expand_cost_samples(cost, X, U, gauss_newton=config.gauss_newton)
+        quad = about_origin(quad, X.mean(axis=0), U.mean(axis=0))
+        x0_dist = empirical_x0(X[:, 0], config.x0_var)
+
+        # Step adaptation (GPS _stepadjust), skipped on the first iteration.
+        prev_ctrl, prev_dyn = state_c["prev_controller"], state_c["prev_dynamics"]
+        prev_cost, prev_x0 = state_c["prev_cost"], state_c["prev_x0"]
+        J_prev = laplace_cost(forward_pass(prev_dyn, prev_ctrl, prev_x0), prev_cost)
+        J_pred = laplace_cost(forward_pass(prev_dyn, ctrl, prev_x0), prev_cost)
+        J_act = laplace_cost(forward_pass(dynamics, ctrl, x0_dist), quad)
+        adapted = adapt_step_mult(
+            step_mult,
+            J_prev,
+            J_pred,
+            J_act,
+            min_step_mult=config.min_step_mult,
+            max_step_mult=config.max_step_mult,
+        )
+        first = state_c["iteration"] == 0
+        step_mult = jnp.where(first | ~jnp.isfinite(adapted), step_mult, adapted)
+
+        epsilon = config.kl_step * step_mult * T
+        new_ctrl, info = c_step(
+            dynamics,
+            quad,
+            ctrl,
+            x0_dist,
+            epsilon,
+            eta,
+            maxent=config.maxent,
+            max_iter=config.dual_max_iter,
+        )
+        mean_traj = rollout_controller(env, new_ctrl, x0_c, jnp.zeros((T, dU), dtype))
+        sample_costs = jax.vmap(lambda x, u: trajectory_cost(true_cost, x, u))(X, U)
+        metrics = GPSMetrics(
+            cost=sample_costs.mean(),
+            step_mult=step_mult,
+            epsilon=info.epsilon,
+            eta=info.eta,
+            kl=info.kl,
+            entropy=controller_entropy(new_ctrl),
+            success=env.success(mean_traj.X),
+            sample_success=jax.vmap(env.success)(X).mean(),
+            c_step_failed=~info.ok,
+            c_step_status=info.status,
+            c_step_iterations=info.iterations,
+        )
+        updates = dict(
+            controller=new_ctrl,
+            prev_controller=ctrl,
+            prev_dynamics=dynamics,
+            prev_cost=quad,
+            prev_x0=x0_dist,
+            step_mult=step_mult,
+            eta=info.eta,
+        )
+        return updates, metrics
+
+    def iteration(state: GPSState, key: PRNGKey) -> tuple[GPSState, GPSMetrics]:
+        keys = jax.random.split(key, C)
+        per_condition = dict(
+            controller=state.controller,
+            prev_controller=state.prev_controller,
+            prev_dynamics=state.prev_dynamics,
+            prev_cost=state.prev_cost,
+            prev_x0=state.prev_x0,
+            step_mult=state.step_mult,
+            eta=state.eta,
+            iteration=jnp.broadcast_to(state.iteration, (C,)),
+        )
+        updates, metrics = jax.vmap(one_condition)(per_condition, X0, keys)
+        new_state = state.replace(**updates, iteration=state.iteration + 1)
+        return new_state, metrics
+
+    def train(key: PRNGKey) -> tuple[GPSState, GPSMetrics]:
+        key_init, key_iter = jax.random.split(key)
+        state = init(key_init)
+        return lax.scan(iteration, state, jax.random.split(key_iter, config.iterations))
+
+    return GPS(init=init, iteration=iteration, train=train)
+
+
+def first_success(success: Array) -> Array:
+    """Index of the first iteration whose controller succeeds on every condition, or -1.
+
+    success: [..., iterations, C] bool (metrics.success of ``train``) -> [...] int.
+    """
+    all_c = jnp.all(success, axis=-1)
+    found = jnp.any(all_c, axis=-1)
+    return jnp.where(found, jnp.argmax(all_c, axis=-1), -1)
