@@ -5,11 +5,16 @@ Problem. The policy acts on what the boat can sense, not on the full state. Odin
 fixed set of horizontal beams from one origin on the mast; a reading is the distance along the
 beam to the first obstacle surface, or the beam's maximum range when nothing is hit.
 
-* :class:`SensorLayout` is the single definition of the beams (angles, ranges, noise, rates).
-* :func:`range_readings` casts the beams with ``mjx.ray`` in a simulated scene (JAX, jit-able).
+Each beam covers an angular sector and is sampled by a few evenly spread rays (a single ray of a
+32-beam fan over 120° passes a 1 m pole at 60 m four times out of five); the beam reads the
+shortest of its rays, as a real sensor's sector minimum would.
+
+* :class:`SensorLayout` is the single definition of the beams (sectors, rays, ranges, noise,
+  rates).
+* :func:`range_readings` casts the rays with ``mjx.ray`` in a simulated scene (JAX, jit-able).
 * :func:`ranges_from_points` reduces a recorded point cloud or scan, given in the hull frame, to
   the same beams (NumPy, for ROS-bag ingestion): each point is a small disc of radius
-  ``point_radius``, and a beam reads the nearest disc it passes through -- the discrete analogue
+  ``point_radius``, and a ray reads the nearest disc it passes through -- the discrete analogue
   of a ray hitting a surface sampled by the points.
 
 Frames: the hull frame has x forward (bow), y to port, z up; a beam angle is measured from the
@@ -36,20 +41,24 @@ SENSED_GROUPS = (1, 1, 0, 0, 0, 0)
 class SensorLayout:
     """Beam layout of the LiDAR and radar fans (hull frame, SI units, angles in rad).
 
-    LiDAR: ``lidar_beams`` beams evenly over ``[-lidar_fov/2, +lidar_fov/2]`` around the bow,
-    ``lidar_range`` metres. Radar: ``radar_beams`` beams evenly over 360°, the first on the bow,
-    ``radar_range`` metres. Readings are ordered LiDAR first, then radar (see :attr:`angles`).
+    LiDAR: ``lidar_beams`` equal sectors tiling ``[-lidar_fov/2, +lidar_fov/2]`` around the bow,
+    ``lidar_range`` metres, each sampled by ``lidar_rays_per_beam`` rays at its sub-sector
+    centres. Radar: ``radar_beams`` equal sectors tiling 360°, the first centred on the bow,
+    ``radar_range`` metres, ``radar_rays_per_beam`` rays each. Readings are ordered LiDAR first
+    (starboard to port), then radar (counter-clockwise from the bow), see :attr:`angles`.
     The noise standard deviations are additive Gaussian range noise; the rates are the nominal
-    update rates of the real sensors (used by bag ingestion and synthetic bags).
+    update rates of the real sensors (for bag ingestion and synthetic bags).
     """
 
     origin: tuple[float, float, float] = (2.0, 0.0, 2.5)  # on the mast (the MJCF "lidar" site)
     lidar_beams: int = 32
     lidar_fov: float = float(np.deg2rad(120.0))
+    lidar_rays_per_beam: int = 5  # 0.75° apart: a 1 m pole is never missed within 60 m
     lidar_range: float = 60.0
     lidar_noise_std: float = 0.05
     lidar_rate_hz: float = 10.0
     radar_beams: int = 16
+    radar_rays_per_beam: int = 15  # 1.5° apart; odd counts keep a ray on the sector centre
     radar_range: float = 300.0
     radar_noise_std: float = 2.0
     radar_rate_hz: float = 1.0
@@ -60,6 +69,8 @@ class SensorLayout:
     def __post_init__(self):
         if self.lidar_beams < 1 or self.radar_beams < 0:
             raise ValueError("SensorLayout needs lidar_beams >= 1 and radar_beams >= 0")
+        if self.lidar_rays_per_beam < 1 or self.radar_rays_per_beam < 1:
+            raise ValueError("SensorLayout needs at least one ray per beam")
         if not (0.0 < self.lidar_fov <= 2 * np.pi):
             raise ValueError(f"lidar_fov must be in (0, 2π], got {self.lidar_fov}")
 
@@ -68,22 +79,45 @@ class SensorLayout:
         return self.lidar_beams + self.radar_beams
 
     @property
+    def lidar_width(self) -> float:
+        """Angular width (rad) of one LiDAR sector."""
+        return self.lidar_fov / self.lidar_beams
+
+    @property
+    def radar_width(self) -> float:
+        """Angular width (rad) of one radar sector."""
+        return 2 * np.pi / max(self.radar_beams, 1)
+
+    @property
     def lidar_angles(self) -> np.ndarray:
-        """[lidar_beams] beam angles (rad), from starboard (−fov/2) to port (+fov/2)."""
-        if self.lidar_beams == 1:
-            return np.zeros(1)
-        return np.linspace(-0.5 * self.lidar_fov, 0.5 * self.lidar_fov, self.lidar_beams)
+        """[lidar_beams] sector-centre angles (rad), from starboard to port."""
+        k = np.arange(self.lidar_beams)
+        return -0.5 * self.lidar_fov + (k + 0.5) * self.lidar_width
 
     @property
     def radar_angles(self) -> np.ndarray:
-        """[radar_beams] beam angles (rad) in [−π, π), the first one on the bow."""
-        a = 2 * np.pi * np.arange(self.radar_beams) / max(self.radar_beams, 1)
+        """[radar_beams] sector-centre angles (rad) in [−π, π), the first one on the bow."""
+        a = np.arange(self.radar_beams) * self.radar_width
         return (a + np.pi) % (2 * np.pi) - np.pi
 
     @property
     def angles(self) -> np.ndarray:
-        """[num_beams] all beam angles: LiDAR then radar."""
+        """[num_beams] all sector-centre angles: LiDAR then radar."""
         return np.concatenate([self.lidar_angles, self.radar_angles])
+
+    @property
+    def lidar_ray_angles(self) -> np.ndarray:
+        """[lidar_beams, lidar_rays_per_beam] ray angles (rad) at the sub-sector centres."""
+        n = self.lidar_rays_per_beam
+        sub = ((np.arange(n) + 0.5) / n - 0.5) * self.lidar_width
+        return self.lidar_angles[:, None] + sub[None, :]
+
+    @property
+    def radar_ray_angles(self) -> np.ndarray:
+        """[radar_beams, radar_rays_per_beam] ray angles (rad) at the sub-sector centres."""
+        n = self.radar_rays_per_beam
+        sub = ((np.arange(n) + 0.5) / n - 0.5) * self.radar_width
+        return self.radar_angles[:, None] + sub[None, :]
 
     @property
     def max_ranges(self) -> np.ndarray:
@@ -101,28 +135,49 @@ class SensorLayout:
             ]
         )
 
+    def beams_from_rays(self, ray_ranges):
+        """Per-ray ranges [num_rays] (LiDAR rays then radar rays, beam-major) -> [num_beams]:
+        each beam reads its shortest ray. Works on NumPy and JAX arrays."""
+        xp = jnp if isinstance(ray_ranges, jax.Array) else np
+        n_lidar = self.lidar_beams * self.lidar_rays_per_beam
+        lidar = ray_ranges[:n_lidar].reshape(self.lidar_beams, self.lidar_rays_per_beam)
+        radar = ray_ranges[n_lidar:].reshape(self.radar_beams, self.radar_rays_per_beam)
+        return xp.concatenate([lidar.min(axis=1), radar.min(axis=1)])
+
     @property
-    def directions(self) -> np.ndarray:
-        """[num_beams, 3] unit beam directions in the hull frame (horizontal)."""
-        a = self.angles
+    def ray_angles(self) -> np.ndarray:
+        """[num_rays] every ray's angle, LiDAR then radar, beam-major."""
+        return np.concatenate([self.lidar_ray_angles.ravel(), self.radar_ray_angles.ravel()])
+
+    @property
+    def ray_directions(self) -> np.ndarray:
+        """[num_rays, 3] unit ray directions in the hull frame (horizontal)."""
+        a = self.ray_angles
         return np.stack([np.cos(a), np.sin(a), np.zeros_like(a)], axis=-1)
 
 
 def range_readings(model: mjx.Model, data: mjx.Data, layout: SensorLayout, body: int = 1) -> Array:
-    """Cast the layout's beams with ``mjx.ray`` from ``body``'s sensor origin -> [num_beams].
+    """Cast the layout's rays with ``mjx.ray`` from ``body``'s sensor origin -> [num_beams].
 
     ``data`` must hold the kinematics of the scene (``mjx.kinematics`` or a step). The carrying
-    body is excluded from the hits; only geoms in groups 0-1 are sensed. A beam that hits nothing
-    within its maximum range reads the maximum range. One scene; vmap over scenes.
+    body is excluded from the hits; only geoms in groups 0-1 are sensed. Each beam reads its
+    shortest ray, capped at the beam's maximum range (no hit reads the maximum range).
+    One scene; vmap over scenes.
     """
+    dist = ray_distances(model, data, layout, body)
+    ranges = layout.beams_from_rays(jnp.where(dist < 0, jnp.inf, dist))
+    return jnp.minimum(ranges, jnp.asarray(layout.max_ranges, dtype=dist.dtype))
+
+
+def ray_distances(model: mjx.Model, data: mjx.Data, layout: SensorLayout, body: int = 1) -> Array:
+    """Raw ``mjx.ray`` distances of every ray, [num_rays] (−1 where a ray hits nothing)."""
     rot = data.xmat[body]
     origin = data.xpos[body] + rot @ jnp.asarray(layout.origin, dtype=data.xpos.dtype)
-    dirs = jnp.asarray(layout.directions, dtype=data.xpos.dtype) @ rot.T
+    dirs = jnp.asarray(layout.ray_directions, dtype=data.xpos.dtype) @ rot.T
     dist, _ = jax.vmap(
         lambda v: mjx.ray(model, data, origin, v, geomgroup=SENSED_GROUPS, bodyexclude=body)
     )(dirs)
-    max_range = jnp.asarray(layout.max_ranges, dtype=dist.dtype)
-    return jnp.where((dist < 0) | (dist > max_range), max_range, dist)
+    return dist
 
 
 def add_range_noise(ranges: Array, layout: SensorLayout, key: jax.Array) -> Array:
@@ -138,10 +193,11 @@ def ranges_from_points(
     """Reduce points in the hull frame, points_xy: [N, 2] (m), to beam readings [num_beams].
 
     Each finite point is a disc of radius ``point_radius`` (default ``layout.point_radius``)
-    in the horizontal plane; beam k, a ray from the sensor origin along angle θ_k, reads the
-    distance to the first disc boundary it crosses (a point within the disc of the origin reads
-    0), capped at the beam's maximum range; a beam that crosses no disc reads the maximum range.
-    NaN/inf points (invalid returns) are ignored. Pure NumPy, one scan.
+    in the horizontal plane. Every ray of the layout, from the sensor origin, reads the distance
+    to the first disc boundary it crosses (0 if the origin is inside a disc); a beam reads its
+    shortest ray, capped at the beam's maximum range (no disc crossed: the maximum range) --
+    exactly what :func:`range_readings` does with ``mjx.ray`` on geoms. NaN/inf points
+    (invalid returns) are ignored. Pure NumPy, one scan.
     """
     pts = np.asarray(points_xy, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2:
@@ -154,11 +210,11 @@ def ranges_from_points(
     if pts.shape[0] == 0:
         return max_range.copy()
     rel = pts - np.asarray(layout.origin[:2])  # [N, 2]
-    dirs = layout.directions[:, :2]  # [K, 2]
-    along = dirs @ rel.T  # [K, N]
+    dirs = layout.ray_directions[:, :2]  # [R, 2]
+    along = dirs @ rel.T  # [R, N]
     lateral2 = np.sum(rel**2, axis=1)[None, :] - along**2
     half_chord2 = rho**2 - lateral2
     hit = (half_chord2 >= 0) & (along + np.sqrt(np.maximum(half_chord2, 0.0)) >= 0)
     entry = np.maximum(along - np.sqrt(np.maximum(half_chord2, 0.0)), 0.0)
-    dist = np.where(hit, entry, np.inf).min(axis=1)
-    return np.minimum(dist, max_range)
+    ray = np.where(hit, entry, np.inf).min(axis=1)
+    return np.minimum(layout.beams_from_rays(ray), max_range)
