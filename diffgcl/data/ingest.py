@@ -99,7 +99,7 @@ class IngestConfig:
 
     dt: float = 0.1
     horizon: int | None = None
-    env: str = "odin_hull"
+    env: str = "hull"
     sensors: Any = None
     tau_thrust: float = 1.5
     tau_nozzle: float = 0.3
@@ -178,16 +178,37 @@ def _field(msg: Any, path: str) -> Any:
     return msg
 
 
-def _check_times(path, topic: str, t: np.ndarray) -> None:
-    back = np.flatnonzero(np.diff(t) < 0)
+# Header stamps may arrive slightly out of order (transport jitter); a step back larger than this
+# is a clock jump or a corrupt stamp, i.e. "time going backwards".
+MAX_REORDER_S = 0.5
+
+
+def order_by_stamp(path, data: TopicMessages) -> TopicMessages:
+    """``data`` sorted by header stamp; raises :class:`BagError` if a stamp jumps backwards by
+    more than :data:`MAX_REORDER_S` relative to the latest stamp seen so far."""
+    t = data.stamp_ns
+    if t.size < 2:
+        return data
+    latest = np.maximum.accumulate(t)
+    back = np.flatnonzero(latest[:-1] - t[1:] > MAX_REORDER_S * NS)
     if back.size:
         i = back[0] + 1
         raise BagError(
             path,
-            f"time goes backwards ({t[i] * 1e-9:.3f}s after {t[i - 1] * 1e-9:.3f}s)",
-            topic,
-            t[i],
+            f"time goes backwards (stamp {t[i] * 1e-9:.3f}s after {latest[i - 1] * 1e-9:.3f}s)",
+            data.topic,
+            data.bag_ns[i],
         )
+    if np.all(np.diff(t) >= 0):
+        return data
+    order = np.argsort(t, kind="stable")
+    return TopicMessages(
+        data.topic,
+        data.msgtype,
+        data.bag_ns[order],
+        t[order],
+        tuple(data.msgs[i] for i in order),
+    )
 
 
 def _check_finite(path, topic: str, t: np.ndarray, v: np.ndarray, what: str) -> None:
@@ -210,7 +231,6 @@ def _require_type(path, topic: str, data: TopicMessages, allowed: Sequence[str],
 
 def _signal(path, data: TopicMessages, values: np.ndarray, max_gap: float, what: str) -> Signal:
     t = data.stamp_ns
-    _check_times(path, data.topic, t)
     _check_finite(path, data.topic, t, values, what)
     return Signal(data.topic, t, values.reshape(len(t), -1).astype(np.float64), max_gap)
 
@@ -549,7 +569,10 @@ def ingest_bag(
     for role in ("position", "heading", "commands"):
         if roles[role] not in present:
             raise BagError(path, f"missing required topic for {role}", roles[role])
-    data = read_topics(path, set(roles.values()))
+    data = {
+        topic: order_by_stamp(path, msgs)
+        for topic, msgs in read_topics(path, set(roles.values())).items()
+    }
     for role in ("position", "heading", "commands"):
         if not data[roles[role]].msgs:
             raise BagError(path, f"required topic for {role} has no messages", roles[role])
@@ -578,7 +601,6 @@ def ingest_bag(
             scans[role] = None
             continue
         d = data[spec.topic]
-        _check_times(path, spec.topic, d.stamp_ns)
         pts = scan_points(path, d, spec) if cfg.observations else []
         index = np.arange(d.stamp_ns.size, dtype=float)[:, None]
         scans[role] = (Signal(spec.topic, d.stamp_ns, index, spec.max_gap), pts)
@@ -622,7 +644,16 @@ def ingest_bag(
             vals = obstacle_sig.v[sel] if sel.any() else obstacle_sig.v
             obs_xy = np.broadcast_to(vals.mean(axis=0), (grid.size, 2))
         else:
-            obs_xy = np.full((grid.size, 2), np.nan)
+            est = _obstacle_from_scans(scans, position, heading, t_a, t_b)
+            if est is None:
+                raise BagError(
+                    path,
+                    "no obstacle position (no obstacle topic and no range-sensor detections)",
+                    tm.obstacle.topic if tm.obstacle is not None else None,
+                    t_a,
+                )
+            _warn(ep_warnings, f"{path}: episode {index}: obstacle position estimated from scans")
+            obs_xy = np.broadcast_to(est, (grid.size, 2))
         valid = ok_p & ok_h & ok_v & ok_r & ok_c & ok_a
         valid_s = valid.sum() * cfg.dt
         if valid_s < tm.min_episode_s:
@@ -684,6 +715,38 @@ def _decode_obstacle(path, data: TopicMessages, datum) -> Signal:
     return _signal(path, data, xy, np.inf, "obstacle position")
 
 
+def _obstacle_from_scans(scans, position: Signal, heading: Signal, t_a: int, t_b: int):
+    """World position [2] of the pole from the scans in [t_a, t_b]: the densest 5 m cell of all
+    returns (LiDAR preferred, radar otherwise), averaged over the returns within 5 m of it."""
+    for role in ("lidar", "radar"):
+        entry = scans.get(role)
+        if entry is None:
+            continue
+        sig, pts = entry
+        sel = np.flatnonzero((sig.t >= t_a) & (sig.t <= t_b))
+        if sel.size == 0:
+            continue
+        pose, ok_p = interpolate(position, sig.t[sel])
+        psi, ok_h = interpolate(heading, sig.t[sel])
+        world = []
+        for j, i in enumerate(sel):
+            if not (ok_p[j] and ok_h[j]) or len(pts[i]) == 0:
+                continue
+            c, s = np.cos(psi[j, 0]), np.sin(psi[j, 0])
+            p = pts[i]
+            world.append(
+                pose[j] + np.stack([c * p[:, 0] - s * p[:, 1], s * p[:, 0] + c * p[:, 1]], 1)
+            )
+        if not world:
+            continue
+        w = np.concatenate(world)
+        cells, counts = np.unique(np.floor(w / 5.0).astype(np.int64), axis=0, return_counts=True)
+        centre = (cells[np.argmax(counts)] + 0.5) * 5.0
+        near = np.linalg.norm(w - centre, axis=1) < 5.0
+        return w[near].mean(axis=0)
+    return None
+
+
 def _fill_invalid(X: np.ndarray, valid: np.ndarray) -> np.ndarray:
     """Replace rows of invalid steps by the nearest valid row (finite placeholders)."""
     if valid.all() or not valid.any():
@@ -697,44 +760,52 @@ def _fill_invalid(X: np.ndarray, valid: np.ndarray) -> np.ndarray:
 
 
 def _observations(path, grid, X, scans, cfg: IngestConfig, ep_warnings) -> tuple[np.ndarray, dict]:
-    """O: [K, dO] range beams of the simulator's layout (LiDAR then radar); see module doc."""
-    if not cfg.observations:
-        return np.zeros((grid.size, 0)), {"lidar": scans.get("lidar") is not None}
-    from diffgcl.sim import sensors
+    """O: [K, dO] in the hull env's layout (:func:`diffgcl.envs.hull.observation`):
+    LiDAR beams, radar beams, sin ψ, cos ψ, u, v, r.
+
+    Each scan's points (hull frame) are reduced with
+    :func:`~diffgcl.sim.sensors.ranges_from_points`; LiDAR points fill the LiDAR beams only and
+    radar detections the radar beams only. A step without a recent scan (or a bag without the
+    sensor) reads the beams' maximum range, i.e. "no return", and is reported as a warning.
+    """
+    from diffgcl.sim import hull, sensors
 
     layout = cfg.sensors if cfg.sensors is not None else sensors.SensorLayout()
-    parts, meta = [], {}
-    for role in ("lidar", "radar"):
-        n_beams, max_range = _layout_beams(layout, role)
-        block = np.full((grid.size, n_beams), max_range)
+    if not cfg.observations:
+        return np.zeros((grid.size, 0)), {"lidar": scans.get("lidar") is not None}
+    ranges = np.broadcast_to(layout.max_ranges, (grid.size, layout.num_beams)).copy()
+    fans = {
+        "lidar": slice(0, layout.lidar_beams),
+        "radar": slice(layout.lidar_beams, layout.num_beams),
+    }
+    meta: dict[str, Any] = {}
+    for role, fan in fans.items():
         entry = scans.get(role)
         meta[role] = entry is not None
-        if entry is not None:
-            sig, pts = entry
-            idx, ok = hold(sig, grid)
-            cache: dict[int, np.ndarray] = {}
-            for k in np.flatnonzero(ok):
-                i = int(idx[k, 0])
-                if i not in cache:
-                    cache[i] = _reduce(pts[i], layout, role)
-                block[k] = cache[i]
-            meta[f"{role}_valid_fraction"] = float(ok.mean())
-            if not ok.all():
-                _warn(
-                    ep_warnings,
-                    f"{path}: topic {sig.topic}: {int((~ok).sum())} steps without a recent "
-                    f"{role} scan (no-return ranges used)",
-                )
-        parts.append(block)
-    return np.concatenate(parts, axis=1), meta
-
-
-def _layout_beams(layout, role: str) -> tuple[int, float]:
-    raise NotImplementedError
-
-
-def _reduce(points: np.ndarray, layout, role: str) -> np.ndarray:
-    raise NotImplementedError
+        if entry is None:
+            meta[f"{role}_valid_fraction"] = 0.0
+            continue
+        sig, pts = entry
+        idx, ok = hold(sig, grid)
+        cache: dict[int, np.ndarray] = {}
+        for k in np.flatnonzero(ok):
+            i = int(idx[k, 0])
+            if i not in cache:
+                cache[i] = sensors.ranges_from_points(pts[i], layout)[fan]
+            ranges[k, fan] = cache[i]
+        meta[f"{role}_valid_fraction"] = float(ok.mean())
+        if not ok.all():
+            _warn(
+                ep_warnings,
+                f"{path}: topic {sig.topic}: {int((~ok).sum())} steps without a recent "
+                f"{role} scan (no-return ranges used)",
+            )
+    psi = X[:, hull.IX_PSI]
+    c, s = np.cos(psi), np.sin(psi)
+    u = c * X[:, hull.IX_VX] + s * X[:, hull.IX_VY]
+    v = -s * X[:, hull.IX_VX] + c * X[:, hull.IX_VY]
+    O = np.concatenate([ranges, np.stack([s, c, u, v, X[:, hull.IX_R]], axis=1)], axis=1)
+    return O, meta
 
 
 # --------------------------------------------------------------------------------------------
