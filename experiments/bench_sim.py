@@ -1,0 +1,176 @@
+"""Simulation benchmark on the arm: MJX rollouts vs C MuJoCo, autodiff vs finite differences.
+
+Measured in one run, side by side:
+
+* rollout throughput (steps/s) of a linear-Gaussian controller on MJX (one device, and the batch
+  sharded over all devices) against C ``mujoco.rollout`` with one thread per core (open-loop
+  controls: C MuJoCo has no batched feedback controller, and the feedback costs ~nothing);
+* linearisation of T = 100 steps by ``jax.jacfwd`` through ``mjx.step`` against centred
+  ``mujoco.mjd_transitionFD``, and their largest difference (float64).
+
+    python experiments/bench_sim.py [--fast] [--json PATH]
+
+The process forces one XLA host device per core (before JAX starts) so that "sharded" means
+split over the cores; float32 for throughput, float64 for the Jacobian comparison.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import time
+
+CORES = os.cpu_count() or 1
+os.environ.setdefault("XLA_FLAGS", f"--xla_force_host_platform_device_count={CORES}")
+
+import jax  # noqa: E402
+import jax.numpy as jnp  # noqa: E402
+import mujoco  # noqa: E402
+import numpy as np  # noqa: E402
+from mujoco import rollout as c_rollout  # noqa: E402
+
+from diffgcl.dynamics.autodiff import linearize_trajectory  # noqa: E402
+from diffgcl.envs import make_env  # noqa: E402
+from diffgcl.runtime import enable_compilation_cache  # noqa: E402
+from diffgcl.sim.rollout import sample_controller  # noqa: E402
+from diffgcl.sim.sharding import batch_mesh, shard_batch  # noqa: E402
+from diffgcl.types import make_controller  # noqa: E402
+
+
+def best_time(fn, repeats: int) -> float:
+    """Fastest of ``repeats`` calls (seconds); the first call is a warm-up."""
+    fn()
+    times = []
+    for _ in range(repeats):
+        start = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - start)
+    return min(times)
+
+
+def mjx_throughput(env, n: int, T: int, sharded: bool, repeats: int) -> float:
+    dtype = jnp.zeros(()).dtype
+    ctrl = make_controller(
+        jnp.zeros((T, 2, 4), dtype) - 0.5 * jnp.eye(2, 4, dtype=dtype),
+        jnp.zeros((T, 2), dtype),
+        jnp.broadcast_to(0.1 * jnp.eye(2, dtype=dtype), (T, 2, 2)),
+    )
+    x0 = env.initial_states()[0]
+    chunks = len(jax.devices()) if sharded else 1
+    per = n // chunks
+
+    @jax.jit
+    def run(keys):
+        traj = jax.vmap(lambda k: sample_controller(env, ctrl, x0, k, per))(keys)
+        return traj.X[..., -1, :]
+
+    keys = jax.random.split(jax.random.key(0), chunks)
+    if sharded:
+        keys = shard_batch(keys, batch_mesh())
+    seconds = best_time(lambda: run(keys).block_until_ready(), repeats)
+    return n * T / seconds
+
+
+def c_throughput(env, n: int, T: int, repeats: int) -> float:
+    model = mujoco.MjModel.from_xml_path(env.mjcf_path)
+    datas = [mujoco.MjData(model) for _ in range(CORES)]
+    data = mujoco.MjData(model)
+    spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
+    state = np.zeros(mujoco.mj_stateSize(model, spec))
+    mujoco.mj_getState(model, data, state, spec)
+    initial = np.tile(state, (n, 1))
+    controls = np.random.default_rng(0).normal(size=(n, T, model.nu))
+
+    def run():
+        c_rollout.rollout(model, datas, initial, controls, persistent_pool=True)
+
+    return n * T / best_time(run, repeats)
+
+
+def linearization_comparison(T: int, repeats: int) -> dict:
+    """Autodiff vs centred FD Jacobians along one arm trajectory, float64."""
+    with jax.enable_x64(True):
+        env = make_env("arm")
+        rng = np.random.default_rng(1)
+        U = 0.3 * rng.normal(size=(T, 2))
+        X = [np.asarray(env.initial_states()[0])]
+        step = jax.jit(env.step)
+        for u in U:
+            X.append(np.asarray(step(jnp.asarray(X[-1]), jnp.asarray(u))))
+        X = np.array(X)
+        lin = jax.jit(lambda X, U: linearize_trajectory(env.step, X, U))
+        Xj, Uj = jnp.asarray(X), jnp.asarray(U)
+        A, B = lin(Xj, Uj)
+        t_ad = best_time(lambda: jax.block_until_ready(lin(Xj, Uj)), repeats)
+
+        model = mujoco.MjModel.from_xml_path(env.mjcf_path)
+        data = mujoco.MjData(model)
+        A_fd = np.zeros((T, 4, 4))
+        B_fd = np.zeros((T, 4, 2))
+
+        def fd():
+            for t in range(T):
+                data.qpos[:], data.qvel[:], data.ctrl[:] = X[t, :2], X[t, 2:], U[t]
+                mujoco.mjd_transitionFD(model, data, 1e-6, True, A_fd[t], B_fd[t], None, None)
+
+        t_fd = best_time(fd, repeats)
+        diff = max(np.abs(np.asarray(A) - A_fd).max(), np.abs(np.asarray(B) - B_fd).max())
+    return {
+        "linearize_autodiff_ms": 1e3 * t_ad,
+        "linearize_fd_ms": 1e3 * t_fd,
+        "linearize_max_abs_diff": float(diff),
+    }
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--fast", action="store_true", help="small sizes, one repeat")
+    parser.add_argument("--json", help="write the figures to this JSON file")
+    args = parser.parse_args(argv)
+    enable_compilation_cache()
+    T = 100
+    sizes = (64, 256) if args.fast else (64, 1024, 8192)
+    repeats = 1 if args.fast else 3
+    env = make_env("arm")  # float32: the precision of throughput runs
+
+    rows = []
+    for n in sizes:
+        row = {"n": n, "c_rollout": c_throughput(env, n, T, repeats)}
+        row["mjx_1_device"] = mjx_throughput(env, n, T, sharded=False, repeats=repeats)
+        if len(jax.devices()) > 1 and n % len(jax.devices()) == 0:
+            row["mjx_sharded"] = mjx_throughput(env, n, T, sharded=True, repeats=repeats)
+        rows.append(row)
+        print(
+            f"N={n:5d} T={T}: MJX 1 device {row['mjx_1_device']:12.0f} steps/s | "
+            f"MJX sharded over {len(jax.devices())} {row.get('mjx_sharded', float('nan')):12.0f}"
+            f" | C rollout ({CORES} threads) {row['c_rollout']:12.0f}"
+        )
+    ref = next(r for r in rows if r["n"] == (1024 if not args.fast else sizes[-1]))
+    best_mjx = max(ref["mjx_1_device"], ref.get("mjx_sharded", 0.0))
+    results = {
+        "mjx_steps_per_s": best_mjx,
+        "c_rollout_steps_per_s": ref["c_rollout"],
+        "mjx_over_c": best_mjx / ref["c_rollout"],
+        "throughput": rows,
+        "devices": len(jax.devices()),
+        "cores": CORES,
+        "fast": args.fast,
+    }
+    results.update(linearization_comparison(T, repeats))
+    print(
+        f"linearise T={T}: autodiff {results['linearize_autodiff_ms']:.2f} ms | centred FD "
+        f"{results['linearize_fd_ms']:.2f} ms | speed-up "
+        f"{results['linearize_fd_ms'] / results['linearize_autodiff_ms']:.1f}x | max |diff| "
+        f"{results['linearize_max_abs_diff']:.2e}"
+    )
+    print(f"MJX / C rollout at N={ref['n']}: {results['mjx_over_c']:.2f}x")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+    return results
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:])
