@@ -14,7 +14,7 @@ import importlib
 import sys
 import time
 
-SUBCOMMAND_MODULES: tuple[str, ...] = ()
+SUBCOMMAND_MODULES: tuple[str, ...] = ("diffgcl.algorithms.gps_cli",)
 
 
 def cmd_envs(args: argparse.Namespace) -> int:

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 import scipy.ndimage
 
+from diffgcl.costs.expansion import trajectory_cost
 from diffgcl.envs import make_env
 from diffgcl.sim.rollout import (
     rollout_controller,
     rollout_policy,
     sample_controller,
     smooth_noise,
-    trajectory_cost,
 )
 from diffgcl.types import make_controller
 

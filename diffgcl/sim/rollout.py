@@ -116,10 +116,3 @@ def rollout_policy(
     X = jnp.concatenate([X, x_final[None]], axis=0)
     O = jnp.concatenate([O, env.obs(x_final)[None]], axis=0)
     return Trajectory(X=X, U=U, O=O)
-
-
-def trajectory_cost(cost, X: Array, U: Array) -> Array:
-    """Σ_t c(x_t, u_t, t) + c(x_T, 0, T) for one trajectory (X [T+1, dX], U [T, dU])."""
-    T = U.shape[0]
-    U_padded = jnp.concatenate([U, jnp.zeros_like(U[:1])], axis=0)
-    return jnp.sum(jax.vmap(cost)(X, U_padded, jnp.arange(T + 1)))
