@@ -1,0 +1,119 @@
+"""Trajectory-optimisation GPS (diffgcl.algorithms.gps): a linear stand-in env with two
+conditions, the MJX arm with its expert cost, expert demos, and compilation counts."""
+
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffgcl.algorithms.expert import write_expert_demos
+from diffgcl.algorithms.gps import GPSConfig, first_success, make_gps
+from diffgcl.data.demos import DemoSet
+
+
+@dataclass(frozen=True)
+class PointMass:
+    """2-D double integrator (a stand-in env for the GPS wiring): x = [p, v], u = force."""
+
+    name: str = "point"
+    dX: int = 4
+    dU: int = 2
+    dO: int = 0
+    dt: float = 0.1
+    horizon: int = 20
+    mjcf_path: str = ""
+
+    def step(self, x, u):
+        p, v = x[:2], x[2:]
+        v = v + self.dt * u
+        return jnp.concatenate([p + self.dt * v, v])
+
+    def obs(self, x, key=None):
+        return jnp.zeros((0,), x.dtype)
+
+    def initial_states(self):
+        return jnp.array([[1.0, -1.0, 0.0, 0.0], [-2.0, 0.5, 0.0, 0.0]])
+
+    def expert_cost(self, x, u, t):
+        return 0.5 * jnp.sum(x[:2] ** 2) + 0.05 * jnp.sum(x[2:] ** 2) + 1e-3 * jnp.sum(u**2)
+
+    def success(self, X):
+        return jnp.all(jnp.abs(X[-3:, :2]) < 0.1)
+
+
+@pytest.mark.parametrize("dynamics", ["autodiff", "regression"])
+def test_gps_on_point_mass_two_conditions(dynamics):
+    env = PointMass()
+    config = GPSConfig(iterations=6, num_samples=5, dynamics=dynamics, init_var=1.0)
+    gps = make_gps(config, env, env.expert_cost)
+    state, metrics = jax.jit(gps.train)(jax.random.PRNGKey(0))
+    assert metrics.cost.shape == (6, 2)
+    assert state.controller.K.shape == (2, env.horizon, env.dU, env.dX)
+    assert not bool(metrics.c_step_failed.any())
+    for leaf in jax.tree.leaves(state):
+        assert np.all(np.isfinite(leaf))
+    cost = np.asarray(metrics.cost)
+    assert np.all(cost[-1] < 0.5 * cost[0])
+    assert bool(metrics.success[-1].all())
+    assert np.all(np.asarray(metrics.entropy[-1]) < np.asarray(metrics.entropy[0]))
+    # The C-step met its KL budget whenever it converged.
+    done = np.asarray(metrics.c_step_status) == 0
+    kl, eps = np.asarray(metrics.kl), np.asarray(metrics.epsilon)
+    assert np.all(np.abs(kl - eps)[done] <= 0.1 * eps[done])
+
+
+@pytest.fixture(scope="module")
+def arm_run():
+    from diffgcl.envs import make_env
+
+    env = make_env("arm")
+    gps = make_gps(GPSConfig(), env, env.expert_cost)
+    train = jax.jit(jax.vmap(gps.train))
+    keys = jax.random.split(jax.random.PRNGKey(0), 2)
+    state, metrics = train(keys)
+    return env, train, state, metrics
+
+
+def test_arm_gps_reaches_upright(arm_run):
+    env, train, state, metrics = arm_run
+    assert metrics.success.shape == (2, 10, 1)
+    assert bool(metrics.success[:, -1].all()), np.asarray(metrics.success)
+    first = np.asarray(first_success(metrics.success))
+    assert np.all((first >= 1) & (first < 10))
+    assert not bool(metrics.c_step_failed.any())
+    cost = np.asarray(metrics.cost)
+    assert np.all(cost[:, -1] < 0.5 * cost[:, 0])
+    # A second sweep with other seeds reuses the compiled program.
+    train(jax.random.split(jax.random.PRNGKey(1), 2))
+    assert train._cache_size() == 1
+
+
+def test_expert_demos_round_trip(arm_run, tmp_path):
+    env, _, state, _ = arm_run
+    controllers = jax.tree.map(lambda a: a[0], state.controller)
+    demos = write_expert_demos(
+        tmp_path / "demos", env, controllers, jax.random.PRNGKey(3), 4, cost=env.expert_cost
+    )
+    loaded = DemoSet.load(tmp_path / "demos")
+    assert loaded.X.shape == (4, env.horizon + 1, env.dX)
+    assert loaded.U.shape == (4, env.horizon, env.dU)
+    assert loaded.O.shape == (4, env.horizon + 1, env.dO)
+    assert loaded.env == "arm" and loaded.dt == pytest.approx(env.dt)
+    assert all(e["source"] == "gps-expert" for e in loaded.episodes)
+    assert sum(e["success"] for e in loaded.episodes) >= 3
+    np.testing.assert_array_equal(loaded.X, demos.X)
+    # The demos carry the controller's stochasticity: they differ from each other.
+    assert np.std(loaded.U[:, 10], axis=0).min() > 1e-3
+
+
+@pytest.mark.slow
+def test_arm_gps_32_seeds():
+    from diffgcl.envs import make_env
+
+    env = make_env("arm")
+    gps = make_gps(GPSConfig(), env, env.expert_cost)
+    _, metrics = jax.jit(jax.vmap(gps.train))(jax.random.split(jax.random.PRNGKey(42), 32))
+    assert int(metrics.success[:, -1].all(axis=-1).sum()) >= 31
+    assert not bool(metrics.c_step_failed.any())
