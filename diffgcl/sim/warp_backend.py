@@ -24,6 +24,16 @@ How MJX 3.17 runs Warp (read from ``mujoco/mjx/_src/io.py`` and ``mujoco/mjx/war
   ``~/.cache/warp/<version>``) and load in ≈ 2 s in a later process.
 * There is no JAX derivative rule for the FFI call: do not differentiate through this backend
   (use the JAX implementation and :mod:`diffgcl.dynamics.autodiff`).
+* On the CPU every ``mjx.step`` call pays ≈ 20–30 ms of Python-side FFI marshalling (warp builds
+  ~170 input and ~170 output arrays and the MuJoCo Warp structs per call) before ~100 kernel
+  launches, whatever N. :meth:`WarpSampler.sample_direct` skips it with a host loop of
+  ``mujoco_warp.step`` on the same model (the one MJX bundles).
+
+Measured on this 2-core CPU (arm, N = 1024, T = 100, float32, :func:`benchmark_warp` /
+:func:`benchmark_jax`, other jobs sharing the cores, load ≈ 12): ``sample`` ≈ 37 k steps/s,
+``sample_direct`` ≈ 51 k steps/s, the JAX implementation ≈ 400 k steps/s. Warp kernels run one
+CPU thread each here, so on a CPU the JAX implementation is the faster sampler by ~8–10×;
+this backend is meant for a CUDA GPU (DESIGN §9), where it has not been run from this repository.
 
 Supported models: any env whose ``step`` is plain ``mjx.step`` on ``x = [qpos, qvel]`` with
 ``u = ctrl`` (the arm). An env that adds forces in JAX (the hull's ``qfrc_applied``) or carries
@@ -33,8 +43,8 @@ compile/launch a kernel here, :class:`WarpUnavailableError` says why (see :func:
 
 Precision: states and controls pass through Warp in float32 (the control ``K x + k + chol(Σ) ε``
 is computed in the callers' precision, then rounded). Trajectories come back in the callers'
-dtype, but only float32-accurate: on the arm they match float64 JAX rollouts to ~1e-5 (the test
-uses 1e-4 relative to the state's scale).
+dtype, but only float32-accurate: on the arm they match float64 JAX rollouts to ≈ 3e-6 over
+100 steps (tests/test_warp_backend.py allows 1e-4 and explains why).
 """
 
 from __future__ import annotations
@@ -223,6 +233,8 @@ class WarpSampler:
     nv: int
     nu: int
     description: str
+    c_model: mujoco.MjModel = dataclasses.field(repr=False)
+    _direct: dict = dataclasses.field(default_factory=dict, repr=False)
 
     @property
     def dX(self) -> int:
@@ -262,6 +274,70 @@ class WarpSampler:
         return _sample(self, controller, x0, noise)
 
     __call__ = sample
+
+    def sample_direct(
+        self, controller: LinearGaussianController, x0: Array, noise: Array
+    ) -> Trajectory:
+        """:meth:`sample` without JAX: a host loop of ``mujoco_warp.step`` on ``nworld = N``
+        worlds, with the controller applied by a small Warp kernel before each step.
+
+        Same inputs and outputs as :meth:`sample` (not jittable; returns JAX arrays). It skips
+        the JAX FFI marshalling of ~170 buffers that ``mjx.step`` pays per call (≈ 25 ms on this
+        CPU), so it is several times faster here. Unlike ``env.step`` the Warp data carries
+        over between steps (time, solver warm start), which changes nothing on the arm and only
+        solver iterates on models with constraints.
+        """
+        import warp as wp
+        from mujoco.mjx.third_party import mujoco_warp as mjw
+
+        T, dX, dU = controller.horizon, self.dX, self.dU
+        check_shape("warp sample_direct", "controller.K", controller.K, (T, dU, dX))
+        if jnp.ndim(noise) != 3:
+            raise ValueError(
+                f"warp sample_direct: noise must be [N, T, dU], got {jnp.shape(noise)}"
+            )
+        N = jnp.shape(noise)[0]
+        check_shape("warp sample_direct", "noise", noise, (N, T, dU))
+        if jnp.ndim(x0) != 1:
+            check_shape("warp sample_direct", "x0", x0, (N, dX))
+        else:
+            check_shape("warp sample_direct", "x0", x0, (dX,))
+        dtype = jnp.result_type(controller.K, x0, noise)
+        device = "cuda:0" if jax.devices()[0].platform == "gpu" else "cpu"
+        control, record = _direct_kernels()
+        f32 = np.float32
+        with wp.ScopedDevice(device):
+            if "model" not in self._direct:
+                self._direct["model"] = mjw.put_model(self.c_model)
+            mw = self._direct["model"]
+            key = ("data", N)
+            if key not in self._direct:
+                self._direct[key] = mjw.make_data(self.c_model, nworld=N)
+            dw = self._direct[key]
+            mjw.reset_data(mw, dw)
+            x0 = np.broadcast_to(np.asarray(x0, f32), (N, dX))
+            dw.qpos.assign(np.ascontiguousarray(x0[:, : self.nq]))
+            dw.qvel.assign(np.ascontiguousarray(x0[:, self.nq :]))
+            K, k, chol = (
+                wp.array(np.asarray(a, f32))
+                for a in (controller.K, controller.k, controller.chol_cov)
+            )
+            eps = wp.array(np.asarray(noise, f32))
+            X = wp.zeros((N, T + 1, dX), dtype=wp.float32)
+            U = wp.zeros((N, T, dU), dtype=wp.float32)
+            for t in range(T):
+                wp.launch(
+                    control,
+                    dim=N,
+                    inputs=[t, K, k, chol, eps, dw.qpos, dw.qvel],
+                    outputs=[dw.ctrl, X, U],
+                )
+                mjw.step(mw, dw)
+            wp.launch(record, dim=N, inputs=[T, dw.qpos, dw.qvel], outputs=[X])
+            X, U = X.numpy(), U.numpy()
+        return Trajectory(
+            X=jnp.asarray(X, dtype), U=jnp.asarray(U, dtype), O=jnp.zeros((N, T + 1, 0), dtype)
+        )
 
 
 @functools.partial(jax.jit, static_argnums=0)
@@ -324,7 +400,9 @@ def make_warp_sampler(
     except NotImplementedError as err:
         reason = f"MuJoCo Warp does not support it: {err}"
         raise WarpUnsupportedError(f"{description}: {reason}") from err
-    sampler = WarpSampler(model=mx, data0=d0, nq=m.nq, nv=m.nv, nu=m.nu, description=description)
+    sampler = WarpSampler(
+        model=mx, data0=d0, nq=m.nq, nv=m.nv, nu=m.nu, description=description, c_model=m
+    )
     if env is not None and check_env_step:
         _check_against_env(sampler, env)
     return sampler
@@ -345,6 +423,60 @@ def _check_against_env(sampler: WarpSampler, env) -> None:
         )
 
 
+@functools.cache
+def _direct_kernels():
+    """Warp kernels of :meth:`WarpSampler.sample_direct` (defined on first use: importing this
+    module must not need warp-lang)."""
+    import warp as wp
+
+    @wp.kernel(enable_backward=False)
+    def control(
+        t: int,
+        K: wp.array3d(dtype=wp.float32),
+        k: wp.array2d(dtype=wp.float32),
+        chol: wp.array3d(dtype=wp.float32),
+        eps: wp.array3d(dtype=wp.float32),
+        qpos: wp.array2d(dtype=wp.float32),
+        qvel: wp.array2d(dtype=wp.float32),
+        ctrl: wp.array2d(dtype=wp.float32),
+        X: wp.array3d(dtype=wp.float32),
+        U: wp.array3d(dtype=wp.float32),
+    ):
+        n = wp.tid()
+        nq = qpos.shape[1]
+        nv = qvel.shape[1]
+        for i in range(nq):
+            X[n, t, i] = qpos[n, i]
+        for i in range(nv):
+            X[n, t, nq + i] = qvel[n, i]
+        for j in range(ctrl.shape[1]):
+            u = k[t, j]
+            for i in range(nq):
+                u += K[t, j, i] * qpos[n, i]
+            for i in range(nv):
+                u += K[t, j, nq + i] * qvel[n, i]
+            for i in range(ctrl.shape[1]):
+                u += chol[t, j, i] * eps[n, t, i]
+            ctrl[n, j] = u
+            U[n, t, j] = u
+
+    @wp.kernel(enable_backward=False)
+    def record(
+        t: int,
+        qpos: wp.array2d(dtype=wp.float32),
+        qvel: wp.array2d(dtype=wp.float32),
+        X: wp.array3d(dtype=wp.float32),
+    ):
+        n = wp.tid()
+        nq = qpos.shape[1]
+        for i in range(nq):
+            X[n, t, i] = qpos[n, i]
+        for i in range(qvel.shape[1]):
+            X[n, t, nq + i] = qvel[n, i]
+
+    return control, record
+
+
 def _benchmark_controller(T: int, dX: int, dU: int, dtype) -> LinearGaussianController:
     from diffgcl.types import make_controller
 
@@ -356,10 +488,18 @@ def _benchmark_controller(T: int, dX: int, dU: int, dtype) -> LinearGaussianCont
 
 
 def benchmark_warp(
-    n_samples: int = 1024, T: int = 100, *, env=None, repeats: int = 3, seed: int = 0
+    n_samples: int = 1024,
+    T: int = 100,
+    *,
+    env=None,
+    repeats: int = 3,
+    seed: int = 0,
+    engine: str = "mjx",
 ) -> float:
     """Steps per second (``n_samples * T / seconds``, best of ``repeats`` after a warm-up call)
-    of :meth:`WarpSampler.sample` on the arm (or ``env``) with the controller
+    of :meth:`WarpSampler.sample` (``engine="mjx"``: ``mjx.step`` with ``impl="warp"`` under
+    ``jit``) or :meth:`WarpSampler.sample_direct` (``engine="direct"``: a host loop of
+    ``mujoco_warp.step``) on the arm (or ``env``) with the controller
     ``u = -0.5 [I 0] x + chol(0.1 I) ε``, in the current default float precision.
 
     Compare with :func:`benchmark_jax` (same controller, noise and timing) or
@@ -370,12 +510,15 @@ def benchmark_warp(
         from diffgcl.envs import make_env
 
         env = make_env("arm")
+    if engine not in ("mjx", "direct"):
+        raise ValueError(f"benchmark_warp: engine must be 'mjx' or 'direct', got {engine!r}")
     sampler = make_warp_sampler(env)
+    run = sampler.sample if engine == "mjx" else sampler.sample_direct
     dtype = jnp.zeros(()).dtype
     ctrl = _benchmark_controller(T, env.dX, env.dU, dtype)
     x0 = env.initial_states()[0]
     noise = jax.random.normal(jax.random.key(seed), (n_samples, T, env.dU), dtype)
-    return n_samples * T / _best_time(lambda: sampler.sample(ctrl, x0, noise).X, repeats)
+    return n_samples * T / _best_time(lambda: run(ctrl, x0, noise).X, repeats)
 
 
 def benchmark_jax(
