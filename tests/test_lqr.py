@@ -99,21 +99,30 @@ def test_large_eta_returns_previous_controller():
 
 def _simulate(dynamics, controller, x0, key, n):
     """Sample n trajectories of a linear-Gaussian controller in linear-Gaussian dynamics."""
-    T = dynamics.A.shape[0]
     kx, ku, kw = jax.random.split(key, 3)
-    x = x0.mean + jax.random.normal(kx, (n, x0.mean.shape[0])) @ jnp.linalg.cholesky(x0.cov).T
-    dU = controller.k.shape[-1]
-    dX = x0.mean.shape[0]
-    noise_u = jax.random.normal(ku, (T, n, dU))
-    noise_x = jax.random.normal(kw, (T, n, dX))
-    Xs, Us = [], []
-    for t in range(T):
-        u = x @ controller.K[t].T + controller.k[t] + noise_u[t] @ controller.chol_cov[t].T
-        Xs.append(x)
-        Us.append(u)
-        chol_dyn = jnp.linalg.cholesky(dynamics.cov[t])
-        x = x @ dynamics.A[t].T + u @ dynamics.B[t].T + dynamics.c[t] + noise_x[t] @ chol_dyn.T
-    return jnp.stack(Xs, 1), jnp.stack(Us, 1), x
+    dX, dU = x0.mean.shape[0], controller.k.shape[-1]
+    T = dynamics.A.shape[0]
+    x = x0.mean + jax.random.normal(kx, (n, dX)) @ jnp.linalg.cholesky(x0.cov).T
+
+    def step(x, inputs):
+        A, B, c, cov, K, k, chol, eps_u, eps_x = inputs
+        u = x @ K.T + k + eps_u @ chol.T
+        x_next = x @ A.T + u @ B.T + c + eps_x @ jnp.linalg.cholesky(cov).T
+        return x_next, (x, u)
+
+    xs = (
+        dynamics.A,
+        dynamics.B,
+        dynamics.c,
+        dynamics.cov,
+        controller.K,
+        controller.k,
+        controller.chol_cov,
+        jax.random.normal(ku, (T, n, dU)),
+        jax.random.normal(kw, (T, n, dX)),
+    )
+    xT, (X, U) = jax.lax.scan(step, x, xs)
+    return jnp.swapaxes(X, 0, 1), jnp.swapaxes(U, 0, 1), xT
 
 
 def _log_prob(controller, X, U):
@@ -130,7 +139,9 @@ def test_forward_pass_and_kl_match_monte_carlo():
     dynamics, cost, prev, x0 = random_problem(seed=4, T=6)
     new = backward_pass(dynamics, cost, prev, 2.0, 0.0).controller
     traj = forward_pass(dynamics, new, x0)
-    X, U, xT = _simulate(dynamics, new, x0, jax.random.PRNGKey(0), 40_000)
+    X, U, xT = jax.jit(_simulate, static_argnums=4)(
+        dynamics, new, x0, jax.random.PRNGKey(0), 40_000
+    )
     dX = X.shape[-1]
     np.testing.assert_allclose(X.mean(0), traj.mu[:, :dX], atol=0.03)
     np.testing.assert_allclose(U.mean(0), traj.mu[:, dX:], atol=0.03)
@@ -231,3 +242,25 @@ def test_entropy_of_isotropic_controller():
     assert float(controller_entropy(ctrl)) == pytest.approx(expected)
     assert ctrl.K.shape == (5, 2, 3) and np.all(np.asarray(ctrl.K) == 0)
     np.testing.assert_allclose(ctrl.inv_cov, 10 * np.broadcast_to(np.eye(2), (5, 2, 2)))
+
+
+def test_passes_under_jit_and_vmap_match_single_instances():
+    problems = [random_problem(seed=s, T=5) for s in (20, 21, 22)]
+    dynamics, cost, prev, x0 = jax.tree.map(lambda *a: jnp.stack(a), *problems)
+    eta = jnp.array([0.5, 1.0, 2.0])
+
+    def kernel(d, c, p, x, e):
+        result = backward_pass(d, c, p, e, 0.0)
+        traj = forward_pass(d, result.controller, x)
+        return result.controller, traj, kl_divergence(traj, result.controller, p)
+
+    batched = jax.jit(jax.vmap(kernel))
+    ctrl, traj, kl = batched(dynamics, cost, prev, x0, eta)
+    single = jax.jit(kernel)
+    for i, problem in enumerate(problems):
+        one_ctrl, one_traj, one_kl = single(*problem, eta[i])
+        np.testing.assert_allclose(ctrl.K[i], one_ctrl.K, atol=1e-10)
+        np.testing.assert_allclose(traj.sigma[i], one_traj.sigma, atol=1e-10)
+        assert float(kl[i]) == pytest.approx(float(one_kl), rel=1e-10)
+    batched(dynamics, cost, prev, x0, 2 * eta)
+    assert batched._cache_size() == 1

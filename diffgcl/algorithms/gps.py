@@ -20,6 +20,7 @@ is a :data:`diffgcl.types.CostFn` closed over by these functions (or a residual 
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -134,9 +135,9 @@ class GPSMetrics:
 class GPS(NamedTuple):
     """The pure functions returned by :func:`make_gps`."""
 
-    init: object
-    iteration: object
-    train: object
+    init: Callable[[PRNGKey], GPSState]
+    iteration: Callable[[GPSState, PRNGKey], tuple[GPSState, GPSMetrics]]
+    train: Callable[[PRNGKey], tuple[GPSState, GPSMetrics]]
 
 
 def empirical_x0(X0: Array, var_floor: float) -> InitialStateDistribution:
@@ -214,9 +215,9 @@ def make_gps(
             iteration=jnp.zeros((), jnp.int32),
         )
 
-    def one_condition(state_c, x0_c, key):
-        """Everything for one condition; state_c has no condition axis."""
-        ctrl, step_mult, eta = state_c["controller"], state_c["step_mult"], state_c["eta"]
+    def one_condition(state: GPSState, x0_c: Array, key: PRNGKey) -> tuple[GPSState, GPSMetrics]:
+        """One GPS iteration for one condition (``state`` without the condition axis)."""
+        ctrl = state.controller
         samples = sample_controller(env, ctrl, x0_c, key, N, smooth_sigma=config.smooth_sigma)
         X, U = samples.X, samples.U
         dynamics = fit(X, U)
@@ -225,21 +226,20 @@ def make_gps(
         x0_dist = empirical_x0(X[:, 0], config.x0_var)
 
         # Step adaptation (GPS _stepadjust), skipped on the first iteration.
-        prev_ctrl, prev_dyn = state_c["prev_controller"], state_c["prev_dynamics"]
-        prev_cost, prev_x0 = state_c["prev_cost"], state_c["prev_x0"]
-        J_prev = laplace_cost(forward_pass(prev_dyn, prev_ctrl, prev_x0), prev_cost)
+        prev_dyn, prev_cost, prev_x0 = state.prev_dynamics, state.prev_cost, state.prev_x0
+        J_prev = laplace_cost(forward_pass(prev_dyn, state.prev_controller, prev_x0), prev_cost)
         J_pred = laplace_cost(forward_pass(prev_dyn, ctrl, prev_x0), prev_cost)
         J_act = laplace_cost(forward_pass(dynamics, ctrl, x0_dist), quad)
         adapted = adapt_step_mult(
-            step_mult,
+            state.step_mult,
             J_prev,
             J_pred,
             J_act,
             min_step_mult=config.min_step_mult,
             max_step_mult=config.max_step_mult,
         )
-        first = state_c["iteration"] == 0
-        step_mult = jnp.where(first | ~jnp.isfinite(adapted), step_mult, adapted)
+        keep = (state.iteration == 0) | ~jnp.isfinite(adapted)
+        step_mult = jnp.where(keep, state.step_mult, adapted)
 
         epsilon = config.kl_step * step_mult * T
         new_ctrl, info = c_step(
@@ -248,7 +248,7 @@ def make_gps(
             ctrl,
             x0_dist,
             epsilon,
-            eta,
+            state.eta,
             maxent=config.maxent,
             max_iter=config.dual_max_iter,
         )
@@ -267,7 +267,7 @@ def make_gps(
             c_step_status=info.status,
             c_step_iterations=info.iterations,
         )
-        updates = dict(
+        new_state = GPSState(
             controller=new_ctrl,
             prev_controller=ctrl,
             prev_dynamics=dynamics,
@@ -275,24 +275,25 @@ def make_gps(
             prev_x0=x0_dist,
             step_mult=step_mult,
             eta=info.eta,
+            iteration=state.iteration + 1,
         )
-        return updates, metrics
+        return new_state, metrics
+
+    # Every state field has a leading condition axis except the shared iteration counter.
+    state_axes = GPSState(
+        controller=0,
+        prev_controller=0,
+        prev_dynamics=0,
+        prev_cost=0,
+        prev_x0=0,
+        step_mult=0,
+        eta=0,
+        iteration=None,
+    )
+    per_condition = jax.vmap(one_condition, in_axes=(state_axes, 0, 0), out_axes=(state_axes, 0))
 
     def iteration(state: GPSState, key: PRNGKey) -> tuple[GPSState, GPSMetrics]:
-        keys = jax.random.split(key, C)
-        per_condition = dict(
-            controller=state.controller,
-            prev_controller=state.prev_controller,
-            prev_dynamics=state.prev_dynamics,
-            prev_cost=state.prev_cost,
-            prev_x0=state.prev_x0,
-            step_mult=state.step_mult,
-            eta=state.eta,
-            iteration=jnp.broadcast_to(state.iteration, (C,)),
-        )
-        updates, metrics = jax.vmap(one_condition)(per_condition, X0, keys)
-        new_state = state.replace(**updates, iteration=state.iteration + 1)
-        return new_state, metrics
+        return per_condition(state, X0, jax.random.split(key, C))
 
     def train(key: PRNGKey) -> tuple[GPSState, GPSMetrics]:
         key_init, key_iter = jax.random.split(key)
