@@ -117,3 +117,21 @@ def test_arm_gps_32_seeds():
     _, metrics = jax.jit(jax.vmap(gps.train))(jax.random.split(jax.random.PRNGKey(42), 32))
     assert int(metrics.success[:, -1].all(axis=-1).sum()) >= 31
     assert not bool(metrics.c_step_failed.any())
+
+
+def test_cli_registers_gps_and_demos_subcommands(tmp_path):
+    import argparse
+
+    from diffgcl.algorithms import gps_cli
+
+    parser = argparse.ArgumentParser()
+    gps_cli.register(parser.add_subparsers(dest="command"))
+    args = parser.parse_args(["gps", "--fast", "--seeds", "3", "--json", str(tmp_path / "s.json")])
+    assert args.command == "gps" and args.seeds == 3 and args.fast and callable(args.func)
+    config = gps_cli.config_from_args(args)
+    assert config.num_samples == 5 and config.kl_step == 0.2 and config.init_var == 0.1
+    assert config.smooth_sigma == 2.0 and config.iterations == 10
+    args = parser.parse_args(["demos", str(tmp_path / "demos"), "--num-demos", "7"])
+    assert args.command == "demos" and args.num_demos == 7 and callable(args.func)
+    with pytest.raises(ValueError, match="dynamics"):
+        GPSConfig(dynamics="magic")
