@@ -30,9 +30,10 @@ How MJX 3.17 runs Warp (read from ``mujoco/mjx/_src/io.py`` and ``mujoco/mjx/war
   ``mujoco_warp.step`` on the same model (the one MJX bundles).
 
 Measured on this 2-core CPU (arm, N = 1024, T = 100, float32, :func:`benchmark_warp` /
-:func:`benchmark_jax`, other jobs sharing the cores, load ≈ 12): ``sample`` ≈ 37 k steps/s,
-``sample_direct`` ≈ 51 k steps/s, the JAX implementation ≈ 400 k steps/s. Warp kernels run one
-CPU thread each here, so on a CPU the JAX implementation is the faster sampler by ~8–10×;
+:func:`benchmark_jax`; three runs with other jobs sharing the cores, load 7–12, hence the
+spread): ``sample`` 29–57 k steps/s, ``sample_direct`` 51–61 k steps/s, the JAX implementation
+280–600 k steps/s. Warp kernels run on one CPU thread each here, so on a CPU the JAX
+implementation is the faster sampler by ~10×;
 this backend is meant for a CUDA GPU (DESIGN §9), where it has not been run from this repository.
 
 Supported models: any env whose ``step`` is plain ``mjx.step`` on ``x = [qpos, qvel]`` with
