@@ -66,7 +66,6 @@ NS = 1_000_000_000
 # default value). Other parameters are the defaults. sysid.SYSID_FIELDS lists the same names.
 TRUE_FACTORS: dict[str, float] = {
     "inertia_scale": 1.10,
-    "damping_u": 0.80,
     "damping_uu": 1.15,
     "damping_v": 1.25,
     "damping_r": 0.85,
