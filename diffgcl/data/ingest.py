@@ -597,7 +597,10 @@ def ingest_bag(
             scans[role] = None
             continue
         if spec.topic not in data or not data[spec.topic].msgs:
-            _warn(bag_warnings, f"{path}: topic {spec.topic}: optional {role} missing; masked")
+            _warn(
+                bag_warnings,
+                f"{path}: topic {spec.topic}: optional {role} missing; its beams read no return",
+            )
             scans[role] = None
             continue
         d = data[spec.topic]

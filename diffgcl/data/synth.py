@@ -36,7 +36,7 @@ topic                      type                         rate      noise (1 σ)
 =========================  ===========================  ========  =============================
 
 **Files**: one bag per episode (``set1/ep000.bag`` ...), the way a boat crew records one run at a
-time; each bag has episode markers 1 s after its first and 1 s before its last message, so the
+time; each bag has episode markers 2.5 s after its first and 1 s before its last message, so the
 bags also work with ``bag_per="set"`` (one bag per set, episodes one after another, 20 s apart).
 ``manifest.json`` lists the episodes with their true metadata and the true hull parameters.
 The output folder is written under a temporary name and renamed when complete.
@@ -73,6 +73,10 @@ TRUE_FACTORS: dict[str, float] = {
     "tau_thrust": 1.30,
     "tau_nozzle": 0.80,
 }
+
+# Episode start marker this long after the first message (so every sensor, the 0.5 Hz radar
+# included, has reported once inside the episode); end marker 1 s before the last message.
+MARKER_LEAD_NS = 2_500_000_000
 
 # 4 December (the seed's collection day), 09:00 UTC, 2017.
 DEFAULT_START_NS = 1_512_378_000 * NS
@@ -700,7 +704,7 @@ def synthesize(
             for i, (prof, (X, U)) in enumerate(zip(profiles, runs, strict=True)):
                 clock = -(-clock // step_ns) * step_ns
                 t = clock + step_ns * np.arange(X.shape[0], dtype=np.int64)
-                markers = (int(t[0] + NS), int(t[-1] - NS))
+                markers = (int(t[0] + MARKER_LEAD_NS), int(t[-1] - NS))
                 stem = f"set{s}_ep{i:03d}" if cfg.bag_per == "episode" else f"set{s}"
                 bag = set_dir / bag_name(stem, cfg.fmt)
                 truth = EpisodeTruth(s, i, prof, t, X, U, str(bag.relative_to(tmp)), markers)
