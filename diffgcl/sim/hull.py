@@ -49,6 +49,7 @@ import numpy as np
 from flax import struct
 from mujoco import mjx
 
+from diffgcl.checks import check_shape
 from diffgcl.sim.mjcf import MJCFError, load_mjcf, put_model, require
 
 Array = jax.Array
@@ -242,7 +243,9 @@ def state_derivative(params: HullParams, x: Array, u: Array) -> Array:
 def _cached_model(dtype_name: str, path: str) -> tuple[mujoco.MjModel, mjx.Model]:
     model = load_mjcf(path)
     check_hull_model(model, path)
-    return model, cast_model(put_model(model), dtype_name)
+    # The cache may first be filled while tracing; the arrays must be concrete, not tracers.
+    with jax.ensure_compile_time_eval():
+        return model, cast_model(put_model(model), dtype_name)
 
 
 def cast_model(mx: mjx.Model, dtype) -> mjx.Model:
@@ -275,23 +278,6 @@ def hull_model(dtype=None, path: str = MJCF_NAME) -> tuple[mujoco.MjModel, mjx.M
     return _cached_model(dtype.name, str(path))
 
 
-def check_shapes(x: Array, u: Array | None = None) -> None:
-    """Raise ``ValueError`` for a wrong-shaped single-instance state [10] or action [2].
-
-    Shapes are static under ``jit``, so this runs in Python at trace time.
-    """
-    if jnp.shape(x) != (DX,):
-        raise ValueError(
-            f"hull state must have shape ({DX},) = {STATE_NAMES}, got {jnp.shape(x)}; "
-            "batch with jax.vmap"
-        )
-    if u is not None and jnp.shape(u) != (DU,):
-        raise ValueError(
-            f"hull action must have shape ({DU},) = {ACTION_NAMES}, got {jnp.shape(u)}; "
-            "batch with jax.vmap"
-        )
-
-
 def hull_step(
     params: HullParams,
     x: Array,
@@ -308,7 +294,8 @@ def hull_step(
     ``params``, ``x`` and ``u``; forward mode is the safe mode through ``mjx.step``.
     ``model`` defaults to ``models/odin_hull.xml`` in the dtype of ``x``.
     """
-    check_shapes(x, u)
+    check_shape("hull_step", "x", x, (DX,))
+    check_shape("hull_step", "u", u, (DU,))
     if model is None:
         model = hull_model(x.dtype)[1]
     hull_body = 1
@@ -318,13 +305,17 @@ def hull_step(
     h = model.opt.timestep
     cmd = clip_command(params, u)
     decay = jnp.exp(-h / jnp.stack([params.tau_thrust, params.tau_nozzle]))
-    data = mjx.make_data(model)
-    data = data.replace(mocap_pos=data.mocap_pos.at[0, :2].set(x[SL_OBS]))
-    for _ in range(substeps):
-        data = data.replace(
+    data0 = mjx.make_data(model)
+    data0 = data0.replace(mocap_pos=data0.mocap_pos.at[0, :2].set(x[SL_OBS]))
+
+    def substep(x, _):
+        data = data0.replace(
             qpos=x[SL_QPOS], qvel=x[SL_QVEL], qfrc_applied=mass_diag * world_acceleration(params, x)
         )
         data = mjx.step(model, data)
         act = cmd + (x[SL_ACT] - cmd) * decay
-        x = jnp.concatenate([data.qpos, data.qvel, act, x[SL_OBS]])
-    return x
+        return jnp.concatenate([data.qpos, data.qvel, act, x[SL_OBS]]), None
+
+    # A scan (not an unrolled loop) keeps one mjx.step in the program: compiles several times
+    # faster, also under jacfwd.
+    return jax.lax.scan(substep, x, None, length=substeps)[0]
