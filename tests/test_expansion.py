@@ -67,10 +67,10 @@ def test_full_hessian_matches_finite_differences():
     X, U = _trajectory(2)
     q = expand_cost(cost, X, U)
     t, h = 2, 1e-5
-    f = lambda x: cost(x, U[t], t)
+    f = jax.jit(lambda x: cost(x, U[t], t))
     grad_fd = np.array([(f(X[t] + h * e) - f(X[t] - h * e)) / (2 * h) for e in np.eye(dX)])
     np.testing.assert_allclose(q.l_x[t], grad_fd, atol=1e-8)
-    g = jax.grad(f)
+    g = jax.jit(jax.grad(f))
     hess_fd = np.array([(g(X[t] + h * e) - g(X[t] - h * e)) / (2 * h) for e in np.eye(dX)])
     np.testing.assert_allclose(q.l_xx[t], hess_fd, atol=1e-6)
 
