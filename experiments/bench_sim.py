@@ -5,6 +5,8 @@ Measured in one run, side by side:
 * rollout throughput (steps/s) of a linear-Gaussian controller on MJX (one device, and the batch
   sharded over all devices) against C ``mujoco.rollout`` with one thread per core (open-loop
   controls: C MuJoCo has no batched feedback controller, and the feedback costs ~nothing);
+* the same rollouts with MJX ``impl="warp"`` (MuJoCo Warp on warp-lang; non-differentiable, for
+  GPUs; here on Warp's CPU device);
 * linearisation of T = 100 steps by ``jax.jacfwd`` through ``mjx.step`` against centred
   ``mujoco.mjd_transitionFD``, and their largest difference (float64).
 
@@ -36,6 +38,7 @@ from diffgcl.envs import make_env  # noqa: E402
 from diffgcl.runtime import enable_compilation_cache  # noqa: E402
 from diffgcl.sim.rollout import sample_controller  # noqa: E402
 from diffgcl.sim.sharding import batch_mesh, shard_batch  # noqa: E402
+from diffgcl.sim.warp_backend import WarpUnavailableError, benchmark_warp  # noqa: E402
 from diffgcl.types import make_controller  # noqa: E402
 
 
@@ -75,6 +78,7 @@ def mjx_throughput(env, n: int, T: int, sharded: bool, repeats: int) -> float:
 
 def c_throughput(env, n: int, T: int, repeats: int) -> float:
     model = mujoco.MjModel.from_xml_path(env.mjcf_path)
+    model.actuator_forcerange[:] = [[-env.torque_limit, env.torque_limit]] * env.dU
     datas = [mujoco.MjData(model) for _ in range(CORES)]
     data = mujoco.MjData(model)
     spec = mujoco.mjtState.mjSTATE_FULLPHYSICS
@@ -147,6 +151,13 @@ def main(argv=None) -> dict:
             f"MJX sharded over {len(jax.devices())} {row.get('mjx_sharded', float('nan')):12.0f}"
             f" | C rollout ({CORES} threads) {row['c_rollout']:12.0f}"
         )
+    warp_n = 1024 if not args.fast else sizes[-1]
+    try:
+        warp = benchmark_warp(warp_n, T, env=env, repeats=repeats)
+        print(f"N={warp_n:5d} T={T}: MJX impl='warp' (CPU) {warp:12.0f} steps/s")
+    except WarpUnavailableError as err:
+        warp = None
+        print(f"MJX impl='warp' unavailable here: {err}")
     ref = next(r for r in rows if r["n"] == (1024 if not args.fast else sizes[-1]))
     best_mjx = max(ref["mjx_1_device"], ref.get("mjx_sharded", 0.0))
     results = {
@@ -154,6 +165,7 @@ def main(argv=None) -> dict:
         "c_rollout_steps_per_s": ref["c_rollout"],
         "mjx_over_c": best_mjx / ref["c_rollout"],
         "throughput": rows,
+        "warp_steps_per_s": warp,
         "devices": len(jax.devices()),
         "cores": CORES,
         "fast": args.fast,
