@@ -50,7 +50,9 @@ class DemoSet:
             )
         n, t1, _ = X.shape
         if U.shape[:2] != (n, t1 - 1):
-            raise DemoError(f"demos: U must be [{n}, {t1 - 1}, dU] to match X{X.shape}; got {U.shape}")
+            raise DemoError(
+                f"demos: U must be [{n}, {t1 - 1}, dU] to match X{X.shape}; got {U.shape}"
+            )
         if O.shape[:2] != (n, t1):
             raise DemoError(f"demos: O must be [{n}, {t1}, dO] to match X{X.shape}; got {O.shape}")
         if mask.shape != (n, t1):
