@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from diffgcl.algorithms.expert import write_expert_demos
-from diffgcl.algorithms.gps import GPSConfig, first_success, make_gps
+from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams, first_success, make_gps
 from diffgcl.data.demos import DemoSet
 
 
@@ -48,7 +48,12 @@ def test_gps_on_point_mass_two_conditions(dynamics):
     env = PointMass()
     config = GPSConfig(iterations=6, num_samples=5, dynamics=dynamics, init_var=1.0)
     gps = make_gps(config, env, env.expert_cost)
-    state, metrics = jax.jit(gps.train)(jax.random.PRNGKey(0))
+    # A sweep over a traced hyperparameter: two KL steps in one vmapped program.
+    hparams = GPSHyperparams(kl_step=jnp.array([0.2, 0.4]), init_var=jnp.array([1.0, 1.0]))
+    sweep = jax.jit(jax.vmap(gps.train, in_axes=(None, 0)))
+    states, sweep_metrics = sweep(jax.random.PRNGKey(0), hparams)
+    np.testing.assert_allclose(sweep_metrics.epsilon[:, 0], [[4.0, 4.0], [8.0, 8.0]])
+    state, metrics = jax.tree.map(lambda a: a[0], (states, sweep_metrics))
     assert metrics.cost.shape == (6, 2)
     assert state.controller.K.shape == (2, env.horizon, env.dU, env.dX)
     assert not bool(metrics.c_step_failed.any())

@@ -12,8 +12,9 @@ One iteration, for every condition at once:
    that produced the samples (:func:`diffgcl.control.dual.c_step`).
 
 :func:`make_gps` does the Python-side setup and returns pure ``init(key) -> state``,
-``iteration(state, key) -> (state, metrics)`` and ``train(key) -> (state, metrics)``, the last
-a ``lax.scan`` over iterations; ``jax.jit(jax.vmap(train))`` runs a sweep over seeds. The cost
+``iteration(state, key) -> (state, metrics)`` and ``train(key, hparams=None) -> (state,
+metrics)``, the last a ``lax.scan`` over iterations; ``jax.jit(jax.vmap(train))`` runs a sweep
+over seeds, and vmapping over a :class:`GPSHyperparams` too sweeps kl_step / init_var. The cost
 is a :data:`diffgcl.types.CostFn` closed over by these functions (or a residual function with
 ``gauss_newton=True``); the reported "true cost" may be a different function.
 """
@@ -89,13 +90,25 @@ class GPSConfig:
 
 
 @struct.dataclass
+class GPSHyperparams:
+    """Continuous hyperparameters that may be traced (swept with vmap): scalars.
+
+    kl_step: base KL step per time step; init_var: initial controller variance. Defaults come
+    from :class:`GPSConfig`.
+    """
+
+    kl_step: Array
+    init_var: Array
+
+
+@struct.dataclass
 class GPSState:
     """GPS state for C conditions (leading axis C on every field but ``iteration``).
 
     controller: the controller to sample next, fields [C, T, ...]. prev_controller,
     prev_dynamics, prev_cost (about the origin, T+1 entries), prev_x0: what the last iteration
     sampled with and fitted (placeholders before the first iteration). step_mult, eta: [C].
-    iteration: int32 scalar, iterations done.
+    kl_step: scalar base KL step (from GPSHyperparams). iteration: int32 scalar, iterations done.
     """
 
     controller: LinearGaussianController
@@ -105,6 +118,7 @@ class GPSState:
     prev_x0: InitialStateDistribution
     step_mult: Array
     eta: Array
+    kl_step: Array
     iteration: Array
 
 
@@ -135,9 +149,9 @@ class GPSMetrics:
 class GPS(NamedTuple):
     """The pure functions returned by :func:`make_gps`."""
 
-    init: Callable[[PRNGKey], GPSState]
+    init: Callable[..., GPSState]  # (key, hparams=None)
     iteration: Callable[[GPSState, PRNGKey], tuple[GPSState, GPSMetrics]]
-    train: Callable[[PRNGKey], tuple[GPSState, GPSMetrics]]
+    train: Callable[..., tuple[GPSState, GPSMetrics]]  # (key, hparams=None)
 
 
 def empirical_x0(X0: Array, var_floor: float) -> InitialStateDistribution:
@@ -190,9 +204,15 @@ def make_gps(
     N = config.num_samples
     dtype = X0.dtype
 
-    def init(key: PRNGKey) -> GPSState:
+    def default_hparams() -> GPSHyperparams:
+        return GPSHyperparams(
+            kl_step=jnp.asarray(config.kl_step, dtype), init_var=jnp.asarray(config.init_var, dtype)
+        )
+
+    def init(key: PRNGKey, hparams: GPSHyperparams | None = None) -> GPSState:
         del key  # the initial controller is deterministic
-        ctrl = init_controller(T, dX, dU, config.init_var, dtype=dtype)
+        hp = default_hparams() if hparams is None else hparams
+        ctrl = init_controller(T, dX, dU, hp.init_var, dtype=dtype)
         ctrl = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), ctrl)
         zeros = lambda *shape: jnp.zeros((C, *shape), dtype)
         return GPSState(
@@ -212,6 +232,7 @@ def make_gps(
             prev_x0=InitialStateDistribution(mean=X0, cov=zeros(dX, dX)),
             step_mult=jnp.full((C,), config.init_step_mult, dtype),
             eta=jnp.full((C,), config.init_eta, dtype),
+            kl_step=jnp.asarray(hp.kl_step, dtype),
             iteration=jnp.zeros((), jnp.int32),
         )
 
@@ -241,7 +262,7 @@ def make_gps(
         keep = (state.iteration == 0) | ~jnp.isfinite(adapted)
         step_mult = jnp.where(keep, state.step_mult, adapted)
 
-        epsilon = config.kl_step * step_mult * T
+        epsilon = state.kl_step * step_mult * T
         new_ctrl, info = c_step(
             dynamics,
             quad,
@@ -275,6 +296,7 @@ def make_gps(
             prev_x0=x0_dist,
             step_mult=step_mult,
             eta=info.eta,
+            kl_step=state.kl_step,
             iteration=state.iteration + 1,
         )
         return new_state, metrics
@@ -288,6 +310,7 @@ def make_gps(
         prev_x0=0,
         step_mult=0,
         eta=0,
+        kl_step=None,
         iteration=None,
     )
     per_condition = jax.vmap(one_condition, in_axes=(state_axes, 0, 0), out_axes=(state_axes, 0))
@@ -295,9 +318,9 @@ def make_gps(
     def iteration(state: GPSState, key: PRNGKey) -> tuple[GPSState, GPSMetrics]:
         return per_condition(state, X0, jax.random.split(key, C))
 
-    def train(key: PRNGKey) -> tuple[GPSState, GPSMetrics]:
+    def train(key: PRNGKey, hparams: GPSHyperparams | None = None) -> tuple[GPSState, GPSMetrics]:
         key_init, key_iter = jax.random.split(key)
-        state = init(key_init)
+        state = init(key_init, hparams)
         return lax.scan(iteration, state, jax.random.split(key_iter, config.iterations))
 
     return GPS(init=init, iteration=iteration, train=train)

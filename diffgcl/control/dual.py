@@ -22,6 +22,7 @@ for one condition; vmap over conditions (the loop runs until every condition is 
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
 from flax import struct
 from jax import lax
 
@@ -254,8 +255,6 @@ def _select(pred: Array, a: LinearGaussianController, b: LinearGaussianControlle
 
 def describe(info: CStepInfo) -> list[str]:
     """Host-side: one line per condition naming the outcome (for logs and error messages)."""
-    import numpy as np
-
     status = np.atleast_1d(np.asarray(info.status))
     eta = np.atleast_1d(np.asarray(info.eta))
     kl = np.atleast_1d(np.asarray(info.kl))
