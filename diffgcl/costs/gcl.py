@@ -76,7 +76,9 @@ class GCLConfig:
 
     n_steps: Adam steps per update; pretrain_steps: steps of :meth:`CostLearner.pretrain`;
     demo_batch / sample_batch: minibatch sizes per condition (capped at what is available);
-    learning_rate, max_grad_norm: Adam and global-norm clipping; fusion: mixture proposal (else
+    learning_rate, max_grad_norm: Adam and global-norm clipping; weight_decay: decoupled (AdamW)
+    decay of the network's weight matrices (``features`` kernels and ``A``), pulling unused
+    nonlinear features towards zero; fusion: mixture proposal (else
     each sample's own proposal); demos_in_partition: append the demo batch to the partition term;
     mixture: ``"counts"`` or ``"uniform"`` (see the module docstring); lcr_weight, mono_weight,
     mono_slack: regularisers.
@@ -88,6 +90,7 @@ class GCLConfig:
     sample_batch: int = 10
     learning_rate: float = 1e-3
     max_grad_norm: float = 1e3
+    weight_decay: float = 0.0
     fusion: bool = True
     demos_in_partition: bool = True
     mixture: str = "counts"
@@ -285,8 +288,19 @@ class CostLearner(NamedTuple):
 
 def make_cost_learner(network: CostNetwork, config: GCLConfig) -> CostLearner:
     """Build the (init, update) pair of the GCL cost update for ``network``."""
+
+    def decay_mask(net: dict) -> dict:
+        mask = jax.tree.map(lambda _: False, net)
+        mask["A"] = True
+        mask["features"] = {
+            layer: {name: name == "kernel" for name in leaves}
+            for layer, leaves in net["features"].items()
+        }
+        return mask
+
     optimiser = optax.chain(
-        optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate)
+        optax.clip_by_global_norm(config.max_grad_norm),
+        optax.adamw(config.learning_rate, weight_decay=config.weight_decay, mask=decay_mask),
     )
 
     def init(key: PRNGKey, params: CostParams | None = None) -> GCLState:
@@ -320,7 +334,7 @@ def make_cost_learner(network: CostNetwork, config: GCLConfig) -> CostLearner:
             state = GCLState(
                 params=state.params.replace(net=net), opt_state=opt_state, step=state.step + 1
             )
-            return state, metrics.replace(grad_norm=optax.global_norm(grads))
+            return state, metrics.replace(grad_norm=optax.tree.norm(grads))
 
         return jax.lax.scan(step, state, jax.random.split(key, n_steps))
 

@@ -13,7 +13,8 @@ Identity features (GCL's ``[I; −I]`` initialisation): the first hidden layer s
 first ``2 dX`` units equal to ``relu(z)`` and ``relu(−z)`` of the normalised state ``z``; deeper
 layers pass these units through unchanged and the feature layer recombines them, so that initially
 ``y(x) = [z; random features]`` and the cost starts close to a random quadratic in ``z``. Every
-other weight starts random. This needs ``hidden[i] ≥ 2 dX`` and ``n_features ≥ dX``.
+other weight starts random. This needs ``hidden[i] ≥ 2 dX`` and ``n_features ≥ dX``. With no
+hidden layers (``hidden=()``) ``y`` is affine in ``z`` and the cost a general PSD quadratic in x.
 
 Optional time input: ``t / horizon`` is appended to the network's input (unnormalised), which lets
 the cost vary along the horizon.
@@ -84,7 +85,8 @@ def _identity_kernel(rows: int, cols: int, dX: int, mode: str, base_init):
 
     mode ``"split"``: columns [0, dX) = I and [dX, 2dX) = −I on input rows [0, dX) (first layer);
     ``"pass"``: the block [0, 2dX) × [0, 2dX) is the identity (hidden layers);
-    ``"merge"``: columns [0, dX) = rows [0, dX) minus rows [dX, 2dX) (feature layer).
+    ``"merge"``: columns [0, dX) = rows [0, dX) minus rows [dX, 2dX) (feature layer);
+    ``"direct"``: columns [0, dX) = I on input rows [0, dX) (feature layer without hidden layers).
     Columns of the identity block receive nothing from other rows, so the path is exact.
     """
 
@@ -94,6 +96,8 @@ def _identity_kernel(rows: int, cols: int, dX: int, mode: str, base_init):
         if mode == "split":
             kernel = kernel.at[:, : 2 * dX].set(0.0)
             kernel = kernel.at[:dX, :dX].set(eye).at[:dX, dX : 2 * dX].set(-eye)
+        elif mode == "direct":
+            kernel = kernel.at[:, :dX].set(0.0).at[:dX, :dX].set(eye)
         elif mode == "pass":
             kernel = kernel.at[:, : 2 * dX].set(0.0)
             kernel = kernel.at[: 2 * dX, : 2 * dX].set(jnp.eye(2 * dX, dtype=dtype))
@@ -127,7 +131,8 @@ class FeatureNetwork(nn.Module):
             if d:
                 init = _identity_kernel(h.shape[-1], width, d, "split" if i == 0 else "pass", base)
             h = nn.relu(nn.Dense(width, kernel_init=init, param_dtype=self.param_dtype)(h))
-        init = _identity_kernel(h.shape[-1], self.n_features, d, "merge", base) if d else base
+        mode = "merge" if self.hidden else "direct"
+        init = _identity_kernel(h.shape[-1], self.n_features, d, mode, base) if d else base
         return nn.Dense(self.n_features, kernel_init=init, param_dtype=self.param_dtype)(h)
 
 
@@ -185,7 +190,7 @@ class CostNetwork:
     def init(self, key: PRNGKey) -> CostParams:
         """Random parameters (identity path if configured), unit normaliser."""
         cfg = self.config
-        too_narrow = min(cfg.hidden, default=0) < 2 * self.dX or cfg.n_features < self.dX
+        too_narrow = min(cfg.hidden, default=2 * self.dX) < 2 * self.dX or cfg.n_features < self.dX
         if cfg.identity_init and too_narrow:
             raise ValueError(
                 f"identity_init needs hidden widths >= 2*dX = {2 * self.dX} and n_features >= "

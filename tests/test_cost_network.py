@@ -1,0 +1,134 @@
+"""The network cost: identity features, normaliser, residual form, Gauss–Newton expansion."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffgcl.costs.expansion import expand_residual_cost
+from diffgcl.costs.network import (
+    CostNetwork,
+    CostNetworkConfig,
+    init_normaliser,
+    update_normaliser,
+)
+
+dX, dU, T = 3, 2, 6
+
+
+def make_network(**kw) -> CostNetwork:
+    config = CostNetworkConfig(hidden=(8, 8), n_features=5, **kw)
+    return CostNetwork(config, dX, dU, jnp.float64)
+
+
+def test_identity_features_start_as_normalised_state():
+    net = make_network()
+    params = net.init(jax.random.key(0))
+    norm = update_normaliser(params.norm, jax.random.normal(jax.random.key(1), (50, dX)) * 2 + 1)
+    params = params.replace(norm=norm)
+    x = jnp.array([0.3, -1.2, 2.5])
+    z = (x - norm.mean) / jnp.sqrt(norm.var)
+    np.testing.assert_allclose(net.features(params, x)[:dX], z, rtol=1e-12)
+
+
+def test_identity_features_without_hidden_layers():
+    net = CostNetwork(CostNetworkConfig(hidden=(), n_features=4), dX, dU, jnp.float64)
+    params = net.init(jax.random.key(0))
+    x = jnp.array([0.3, -1.2, 2.5])
+    np.testing.assert_allclose(net.features(params, x)[:dX], x, rtol=1e-12)
+
+
+def test_identity_init_rejects_narrow_layers():
+    net = CostNetwork(CostNetworkConfig(hidden=(4,), n_features=5), dX, dU, jnp.float64)
+    with pytest.raises(ValueError, match="identity_init"):
+        net.init(jax.random.key(0))
+
+
+def test_cost_is_squared_residual_and_nonnegative():
+    net = make_network(time_input=True, horizon=T)
+    params = net.init(jax.random.key(0))
+    keys = jax.random.split(jax.random.key(1), 2)
+    xs = jax.random.normal(keys[0], (20, dX))
+    us = jax.random.normal(keys[1], (20, dU))
+    ts = jnp.arange(20) % (T + 1)
+    c = jax.vmap(net.cost, in_axes=(None, 0, 0, 0))(params, xs, us, ts)
+    r = jax.vmap(net.residual, in_axes=(None, 0, 0, 0))(params, xs, us, ts)
+    np.testing.assert_allclose(c, jnp.sum(r**2, axis=-1), rtol=1e-12)
+    assert jnp.all(c >= 0)
+    # The time input matters.
+    assert not jnp.allclose(net.cost(params, xs[0], us[0], 0), net.cost(params, xs[0], us[0], T))
+
+
+def test_trajectory_cost_uses_terminal_step_without_action():
+    net = make_network()
+    params = net.init(jax.random.key(0))
+    X = jax.random.normal(jax.random.key(1), (T + 1, dX))
+    U = jax.random.normal(jax.random.key(2), (T, dU))
+    by_hand = sum(net.cost(params, X[t], U[t], t) for t in range(T))
+    by_hand += net.cost(params, X[T], jnp.zeros(dU), T)
+    np.testing.assert_allclose(net.trajectory_cost(params, X, U), by_hand, rtol=1e-12)
+
+
+def test_normaliser_merges_to_full_batch_moments_and_respects_mask():
+    data = jax.random.normal(jax.random.key(0), (100, dX)) * jnp.array([1.0, 3.0, 0.1]) + 2.0
+    norm = init_normaliser(dX, jnp.float64)
+    for chunk in jnp.split(data, [10, 45, 80]):
+        norm = update_normaliser(norm, chunk)
+    np.testing.assert_allclose(norm.mean, data.mean(0), rtol=1e-12)
+    np.testing.assert_allclose(norm.var, data.var(0), rtol=1e-10)
+    assert norm.count == 100
+    mask = jnp.arange(100) < 30
+    masked = update_normaliser(init_normaliser(dX, jnp.float64), data, mask)
+    np.testing.assert_allclose(masked.mean, data[:30].mean(0), rtol=1e-12)
+
+
+def test_std_floor_and_no_gradient_into_normaliser():
+    net = make_network(std_floor=0.5)
+    params = net.init(jax.random.key(0))
+    constant = jnp.ones((10, dX)) * jnp.array([1.0, 2.0, 3.0])
+    params = params.replace(norm=update_normaliser(params.norm, constant))
+    z = net.normalise(params, jnp.array([2.0, 2.0, 2.0]))
+    np.testing.assert_allclose(z, jnp.array([2.0, 0.0, -2.0]))
+    grads = jax.grad(lambda p: net.cost(p, jnp.ones(dX), jnp.ones(dU), 0))(params)
+    assert all(jnp.all(g == 0) for g in jax.tree.leaves(grads.norm))
+    assert any(jnp.any(g != 0) for g in jax.tree.leaves(grads.net))
+
+
+def test_fixed_action_weight_gets_no_gradient():
+    net = make_network(learn_action_weight=False, action_weight=0.3)
+    params = net.init(jax.random.key(0))
+    grads = jax.grad(lambda p: net.cost(p, jnp.ones(dX), jnp.ones(dU), 0))(params)
+    assert grads.net["log_w_u"] == 0
+    np.testing.assert_allclose(net.action_weight(params), 0.3)
+
+
+def test_gauss_newton_expansion_of_the_network():
+    net = make_network()
+    params = net.init(jax.random.key(0))
+    X = jax.random.normal(jax.random.key(1), (T + 1, dX))
+    U = jax.random.normal(jax.random.key(2), (T, dU))
+    quad = expand_residual_cost(net.bind_residual(params), X, U)
+    U_all = jnp.concatenate([U, jnp.zeros((1, dU))])
+    np.testing.assert_allclose(quad.l, jax.vmap(net.bind(params))(X, U_all, jnp.arange(T + 1)))
+    assert jnp.all(jnp.linalg.eigvalsh(quad.l_xx) >= -1e-10)
+    w_u = net.action_weight(params)
+    np.testing.assert_allclose(quad.l_uu[:T], jnp.broadcast_to(2 * w_u * jnp.eye(dU), (T, dU, dU)))
+    # l_xx = 2 JᵀAᵀAJ with J = ∂y/∂x.
+    J = jax.jacfwd(net.features, argnums=1)(params, X[0], 0)
+    A = params.net["A"]
+    np.testing.assert_allclose(quad.l_xx[0], 2 * J.T @ A.T @ A @ J, rtol=1e-10, atol=1e-12)
+    # Exact gradient.
+    grad_x = jax.grad(net.cost, argnums=1)(params, X[0], U[0], 0)
+    np.testing.assert_allclose(quad.l_x[0], grad_x, rtol=1e-10)
+
+
+def test_jit_vmap_no_recompile():
+    net = make_network()
+    params = net.init(jax.random.key(0))
+    batch_cost = jax.jit(jax.vmap(net.trajectory_cost, in_axes=(None, 0, 0)))
+    X = jax.random.normal(jax.random.key(1), (4, T + 1, dX))
+    U = jax.random.normal(jax.random.key(2), (4, T, dU))
+    first = batch_cost(params, X, U)
+    second = batch_cost(params, X + 1.0, U)
+    assert first.shape == (4,) and jnp.all(jnp.isfinite(second))
+    assert batch_cost._cache_size() == 1

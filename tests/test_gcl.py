@@ -1,0 +1,310 @@
+"""The GCL objective and update: gradient against the explicit formula (seed eq. 2.13), fusion
+importance weights against Monte Carlo, regularisers on hand-built sequences, robustness, jit/vmap,
+the seed's model-sampled variant, and the LQ inverse-optimal-control check."""
+
+import dataclasses
+import importlib.util
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy import stats
+
+from diffgcl.costs.buffer import action_log_density, buffer_add, init_buffer
+from diffgcl.costs.demo_controller import fit_demo_controller
+from diffgcl.costs.gcl import (
+    GCLConfig,
+    WeightedSamples,
+    fusion_weighted_samples,
+    gcl_objective,
+    lcr_penalty,
+    make_cost_learner,
+    mono_penalty,
+)
+from diffgcl.costs.model_samples import model_log_density, model_weighted_samples
+from diffgcl.costs.network import CostNetwork, CostNetworkConfig
+from diffgcl.types import InitialStateDistribution, LinearDynamics, make_controller
+
+dX, dU, T = 2, 1, 4
+NET = CostNetwork(CostNetworkConfig(hidden=(6, 6), n_features=4), dX, dU, jnp.float64)
+
+
+def random_set(key, n, log_q_scale=3.0) -> WeightedSamples:
+    key_x, key_u, key_q = jax.random.split(key, 3)
+    return WeightedSamples(
+        X=jax.random.normal(key_x, (n, T + 1, dX)),
+        U=jax.random.normal(key_u, (n, T, dU)),
+        log_q=log_q_scale * jax.random.normal(key_q, (n,)),
+        valid=jnp.ones(n, bool),
+    )
+
+
+def test_gradient_matches_explicit_gcl_gradient():
+    """∇L = mean_demo ∂c(τ_i) − Σ_j (w_j / Σ_k w_k) ∂c(τ_j), w_j = exp(−c(τ_j) − log q(τ_j)),
+    j over the samples and the demos appended to them (seed eq. 2.13)."""
+    config = GCLConfig()  # no regularisers
+    params = NET.init(jax.random.key(0))
+    demos = random_set(jax.random.key(1), 3)
+    samples = random_set(jax.random.key(2), 5)
+
+    def objective(net):
+        return gcl_objective(NET, params.replace(net=net), demos, samples, config)[0]
+
+    auto = jax.grad(objective)(params.net)
+
+    def traj_cost(net, X, U):
+        return NET.trajectory_cost(params.replace(net=net), X, U)
+
+    grad_c = jax.vmap(jax.grad(traj_cost), in_axes=(None, 0, 0))
+    cost = jax.vmap(traj_cost, in_axes=(None, 0, 0))
+    g_demo = grad_c(params.net, demos.X, demos.U)
+    X_all = jnp.concatenate([samples.X, demos.X])
+    U_all = jnp.concatenate([samples.U, demos.U])
+    log_q = jnp.concatenate([samples.log_q, demos.log_q])
+    w = np.exp(np.asarray(-cost(params.net, X_all, U_all) - log_q, dtype=np.float64))
+    w_norm = w / w.sum()
+    g_all = grad_c(params.net, X_all, U_all)
+    explicit = jax.tree.map(
+        lambda gd, ga: gd.mean(0) - jnp.tensordot(jnp.asarray(w_norm), ga, axes=1), g_demo, g_all
+    )
+    for a, b in zip(jax.tree.leaves(auto), jax.tree.leaves(explicit), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-11)
+
+
+def gaussian_controller(k, var):
+    K = jnp.zeros((T, dU, dX)).at[:, 0, 0].set(-0.5)
+    return make_controller(K, jnp.full((T, dU), k), jnp.full((T, dU, dU), var))
+
+
+def rollout(key, controller):
+    """x' = [x0 + u, x1 + x0], x_0 = [1, 0]."""
+    noise = jax.random.normal(key, (T, dU))
+
+    def step(x, inp):
+        K, k, L, v = inp
+        u = K @ x + k + L @ v
+        return jnp.array([x[0] + u[0], x[1] + x[0]]), (x, u)
+
+    xs = (controller.K, controller.k, controller.chol_cov, noise)
+    x_T, (X, U) = jax.lax.scan(step, jnp.array([1.0, 0.0]), xs)
+    return jnp.concatenate([X, x_T[None]]), U
+
+
+def test_fusion_weights_give_unbiased_self_normalised_estimates():
+    """Samples from a mixture of three controllers, reweighted to a target controller p by
+    p(τ) / q_fusion(τ), estimate E_p[f] as well as direct sampling from p does."""
+    proposals = [gaussian_controller(-0.5, 0.5), gaussian_controller(0.4, 1.0)]
+    proposals.append(gaussian_controller(1.0, 0.3))
+    target = gaussian_controller(0.3, 0.4)
+    n = 4000
+    config = GCLConfig(demos_in_partition=False)
+    buffer = init_buffer(3 * n, 3, T, dX, dU, jnp.float64)
+    for i, ctrl in enumerate(proposals):
+        keys = jax.random.split(jax.random.key(i), n)
+        X, U = jax.vmap(rollout, in_axes=(0, None))(keys, ctrl)
+        buffer = buffer_add(buffer, ctrl, X, U)
+    demo_X, demo_U = jax.vmap(rollout, in_axes=(0, None))(
+        jax.random.split(jax.random.key(9), 5), target
+    )
+    samples, _ = fusion_weighted_samples(
+        buffer, fit_demo_controller(demo_X, demo_U), demo_X, demo_U, config
+    )
+
+    log_p = jax.vmap(action_log_density, in_axes=(None, 0, 0))(target, samples.X, samples.U)
+    w = jax.nn.softmax(log_p - samples.log_q)
+
+    def f(X, U):
+        return X[-1, 1] + U.sum() ** 2
+
+    values = jax.vmap(f)(samples.X, samples.U)
+    estimate = jnp.sum(w * values)
+    direct_X, direct_U = jax.vmap(rollout, in_axes=(0, None))(
+        jax.random.split(jax.random.key(99), 20000), target
+    )
+    direct = jax.vmap(f)(direct_X, direct_U)
+    stderr = direct.std() / jnp.sqrt(direct.size)
+    ess = 1.0 / jnp.sum(w**2)
+    tolerance = 4 * direct.std() * jnp.sqrt(1 / ess + 1 / direct.size)
+    assert ess > 500
+    assert abs(estimate - direct.mean()) < tolerance, (estimate, direct.mean(), stderr, ess)
+
+    # The mixture is the count-weighted average of the three densities.
+    x0, u0 = samples.X[0], samples.U[0]
+    dens = jnp.array([action_log_density(c, x0, u0) for c in proposals])
+    np.testing.assert_allclose(samples.log_q[0], jax.nn.logsumexp(dens) - jnp.log(3.0))
+
+
+def test_uniform_mixture_includes_demo_controller():
+    ctrl_a, ctrl_b = gaussian_controller(0.0, 1.0), gaussian_controller(0.5, 0.5)
+    buffer = init_buffer(8, 2, T, dX, dU, jnp.float64)
+    X, U = jax.vmap(rollout, in_axes=(0, None))(jax.random.split(jax.random.key(0), 4), ctrl_a)
+    buffer = buffer_add(buffer, ctrl_a, X, U)
+    demo_ctrl = gaussian_controller(1.0, 0.2)
+    config = GCLConfig(mixture="uniform")
+    samples, demos = fusion_weighted_samples(buffer, demo_ctrl, X[:2], U[:2], config)
+
+    dens = jnp.array([action_log_density(c, X[1], U[1]) for c in (ctrl_a, demo_ctrl)])
+    np.testing.assert_allclose(samples.log_q[1], jax.nn.logsumexp(dens) - jnp.log(2.0))
+    np.testing.assert_allclose(demos.log_q[1], samples.log_q[1])
+    # Without fusion, each trajectory keeps its own proposal's density.
+    samples, demos = fusion_weighted_samples(
+        buffer, demo_ctrl, X[:2], U[:2], GCLConfig(fusion=False)
+    )
+    np.testing.assert_allclose(samples.log_q[1], dens[0])
+    np.testing.assert_allclose(demos.log_q[1], dens[1])
+    del ctrl_b
+
+
+def test_regularisers_on_hand_built_sequences():
+    assert lcr_penalty(jnp.array([0.0, 1.0, 2.0, 3.0, 4.0])) == 0.0  # constant rate
+    # Second differences of t²: 2 at each of the 3 interior points -> 3 · 2² = 12.
+    assert lcr_penalty(jnp.array([0.0, 1.0, 4.0, 9.0, 16.0])) == 12.0
+    assert mono_penalty(jnp.array([5.0, 4.0, 3.5, 0.0]), 1.0) == 0.0  # decreasing
+    assert mono_penalty(jnp.array([0.0, 1.0, 0.0]), 1.0) == 0.0  # within the slack
+    # Increases of 3 and 3 beyond slack 1: (3−1)² + (3−1)² = 8; the decrease costs nothing.
+    assert mono_penalty(jnp.array([0.0, 3.0, 2.0, 5.0]), 1.0) == 8.0
+
+
+def test_regulariser_weights_enter_the_objective():
+    params = NET.init(jax.random.key(0))
+    demos, samples = random_set(jax.random.key(1), 3), random_set(jax.random.key(2), 4)
+    base, m = gcl_objective(NET, params, demos, samples, GCLConfig())
+    reg, _ = gcl_objective(NET, params, demos, samples, GCLConfig(lcr_weight=2.0, mono_weight=3.0))
+    np.testing.assert_allclose(reg, base + 2.0 * m.lcr + 3.0 * m.mono)
+    assert m.lcr > 0 and m.mono >= 0
+
+
+@pytest.mark.parametrize("demos_in_partition", [True, False])
+def test_objective_finite_with_one_sample_and_unlikely_samples(demos_in_partition):
+    config = GCLConfig(demos_in_partition=demos_in_partition)
+    params = NET.init(jax.random.key(0))
+    demos = random_set(jax.random.key(1), 2)
+    one = random_set(jax.random.key(2), 1)
+    unlikely = random_set(jax.random.key(3), 4, log_q_scale=1e4).replace(
+        X=random_set(jax.random.key(4), 4).X * 1e3
+    )
+    empty = one.replace(valid=jnp.zeros(1, bool))
+    for samples in (one, unlikely, empty):
+        loss, grads = jax.value_and_grad(
+            lambda net, s=samples: gcl_objective(NET, params.replace(net=net), demos, s, config)[0]
+        )(params.net)
+        assert jnp.isfinite(loss)
+        assert all(jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads))
+
+
+def buffer_and_demos(config, n_iter=2):
+    ctrl = gaussian_controller(0.0, 1.0)
+    buffer = init_buffer(12, 3, T, dX, dU, jnp.float64)
+    for i in range(n_iter):
+        keys = jax.random.split(jax.random.key(10 + i), 4)
+        X, U = jax.vmap(rollout, in_axes=(0, None))(keys, ctrl)
+        buffer = buffer_add(buffer, ctrl, X, U)
+    demo_ctrl = gaussian_controller(0.5, 0.2)
+    demo_X, demo_U = jax.vmap(rollout, in_axes=(0, None))(
+        jax.random.split(jax.random.key(5), 6), demo_ctrl
+    )
+    samples, demos = fusion_weighted_samples(
+        buffer, fit_demo_controller(demo_X, demo_U), demo_X, demo_U, config
+    )
+    add_condition = lambda tree: jax.tree.map(lambda a: a[None], tree)  # C = 1
+    return add_condition(samples), add_condition(demos)
+
+
+def test_update_decreases_loss_jits_once_and_vmaps_over_seeds():
+    config = GCLConfig(n_steps=30, demo_batch=3, sample_batch=5, learning_rate=1e-2, lcr_weight=0.1)
+    learner = make_cost_learner(NET, config)
+    samples, demos = buffer_and_demos(config)
+    update = jax.jit(learner.update)
+    state = learner.init(jax.random.key(0))
+    loss_before, _ = learner.loss(state.params, demos, samples)
+    state, metrics = update(state, jax.random.key(1), demos, samples)
+    state, metrics = update(state, jax.random.key(2), demos, samples)
+    loss_after, _ = learner.loss(state.params, demos, samples)
+    assert metrics.loss.shape == (config.n_steps,)
+    assert loss_after < loss_before
+    assert int(state.step) == 2 * config.n_steps
+    assert update._cache_size() == 1
+
+    states = jax.vmap(learner.init)(jax.random.split(jax.random.key(3), 2))
+    states, metrics = jax.jit(jax.vmap(learner.update, in_axes=(0, 0, None, None)))(
+        states, jax.random.split(jax.random.key(4), 2), demos, samples
+    )
+    assert metrics.loss.shape == (2, config.n_steps)
+    assert jnp.all(jnp.isfinite(metrics.loss))
+
+
+def test_minibatch_of_partly_empty_buffer_is_masked():
+    config = GCLConfig(n_steps=3, sample_batch=10, demo_batch=3)
+    samples, demos = buffer_and_demos(config, n_iter=1)  # 4 valid of 12 slots
+    learner = make_cost_learner(NET, config)
+    state, metrics = jax.jit(learner.update)(
+        learner.init(jax.random.key(0)), jax.random.key(1), demos, samples
+    )
+    assert jnp.all(jnp.isfinite(metrics.loss)) and jnp.all(metrics.ess <= 4 + 3 + 1e-9)
+
+
+def test_demo_controller_recovers_a_known_controller():
+    ctrl = gaussian_controller(0.3, 0.25)
+    X, U = jax.vmap(rollout, in_axes=(0, None))(jax.random.split(jax.random.key(0), 4000), ctrl)
+    fitted = fit_demo_controller(X, U, ridge=1e-6, cov_floor=0.0)
+    np.testing.assert_allclose(fitted.K[1:], ctrl.K[1:], atol=0.05)  # x is fixed at t = 0
+    np.testing.assert_allclose(fitted.k[1:], ctrl.k[1:], atol=0.05)  # k_0 absorbs K_0 x_0
+    np.testing.assert_allclose(fitted.cov, ctrl.cov, rtol=0.1)
+
+
+def test_model_log_density_matches_scipy_and_samples_feed_the_learner():
+    A = jnp.broadcast_to(jnp.array([[1.0, 0.1], [0.0, 1.0]]), (T, dX, dX))
+    B = jnp.broadcast_to(jnp.array([[0.0], [0.1]]), (T, dX, dU))
+    c = jnp.broadcast_to(jnp.array([0.05, 0.0]), (T, dX))
+    cov = jnp.broadcast_to(0.01 * jnp.eye(dX), (T, dX, dX))
+    dyn = LinearDynamics(A=A, B=B, c=c, cov=cov)
+    ctrl = gaussian_controller(0.2, 0.3)
+    x0 = InitialStateDistribution(mean=jnp.array([1.0, 0.0]), cov=0.04 * jnp.eye(dX))
+    demo_X = jax.random.normal(jax.random.key(0), (3, T + 1, dX))
+    demo_U = jax.random.normal(jax.random.key(1), (3, T, dU))
+    samples, demos = model_weighted_samples(
+        jax.random.key(2), dyn, ctrl, x0, demo_X, demo_U, 6, dyn_jitter=0.0
+    )
+    X, U = samples.X[0], samples.U[0]
+    ref = stats.multivariate_normal(np.asarray(x0.mean), np.asarray(x0.cov)).logpdf(X[0])
+    for t in range(T):
+        mean_u = ctrl.K[t] @ X[t] + ctrl.k[t]
+        ref += stats.norm(float(mean_u[0]), np.sqrt(0.3)).logpdf(float(U[t, 0]))
+        mean_x = A[t] @ X[t] + B[t] @ U[t] + c[t]
+        ref += stats.multivariate_normal(np.asarray(mean_x), np.asarray(cov[t])).logpdf(X[t + 1])
+    np.testing.assert_allclose(samples.log_q[0], ref, rtol=1e-10)
+    np.testing.assert_allclose(
+        demos.log_q[1], model_log_density(dyn, ctrl, x0, demo_X[1], demo_U[1], 0.0)
+    )
+    learner = make_cost_learner(NET, GCLConfig(n_steps=2, sample_batch=4, demo_batch=2))
+    add_condition = lambda tree: jax.tree.map(lambda a: a[None], tree)
+    _, metrics = learner.update(
+        learner.init(jax.random.key(3)),
+        jax.random.key(4),
+        add_condition(demos),
+        add_condition(samples),
+    )
+    assert jnp.all(jnp.isfinite(metrics.loss))
+
+
+def load_lq_ioc():
+    path = Path(__file__).resolve().parents[1] / "experiments" / "lq_ioc.py"
+    spec = importlib.util.spec_from_file_location("lq_ioc", path)
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_lq_ioc_fast_meets_thresholds():
+    lq_ioc = load_lq_ioc()
+    out = lq_ioc.run(lq_ioc.fast_config(), seeds=[0])
+    assert out["spearman"] >= 0.9, out
+    assert out["epic_distance"] <= 0.1, out
+
+
+def test_lq_ioc_config_is_frozen():
+    lq_ioc = load_lq_ioc()
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        lq_ioc.fast_config().horizon = 3
