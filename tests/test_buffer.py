@@ -1,0 +1,98 @@
+"""The sample ring buffer: wrap-around, eviction of a controller's samples, masks, densities."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from scipy import stats
+
+from diffgcl.costs.buffer import (
+    action_log_density,
+    buffer_add,
+    controller_log_densities,
+    init_buffer,
+    samples_per_controller,
+)
+from diffgcl.types import make_controller
+
+T, dX, dU = 3, 2, 2
+add = jax.jit(buffer_add)
+
+
+def controller(k: float):
+    K = jnp.broadcast_to(jnp.array([[0.5, 0.0], [0.1, -0.2]]), (T, dU, dX))
+    cov = jnp.broadcast_to(jnp.array([[0.5, 0.1], [0.1, 0.3]]), (T, dU, dU))
+    return make_controller(K, jnp.full((T, dU), k), cov)
+
+
+def batch(value: float, n: int):
+    return jnp.full((n, T + 1, dX), value), jnp.full((n, T, dU), value)
+
+
+def test_empty_buffer_masks_everything():
+    buffer = init_buffer(6, 3, T, dX, dU, jnp.float64)
+    assert not buffer.valid.any() and not buffer.controller_valid.any()
+    log_q = controller_log_densities(buffer, jnp.zeros((T + 1, dX)), jnp.zeros((T, dU)))
+    assert jnp.all(log_q == -jnp.inf)
+
+
+def test_ring_wraps_and_evicts_the_overwritten_controllers_samples():
+    buffer = init_buffer(6, 3, T, dX, dU, jnp.float64)
+    for i in range(3):  # fills exactly: 3 controllers × 2 samples
+        buffer = add(buffer, controller(float(i)), *batch(float(i), 2))
+    assert buffer.valid.all() and buffer.controller_valid.all()
+    np.testing.assert_array_equal(samples_per_controller(buffer), [2, 2, 2])
+    # A 4th controller reuses slot 0; its 2 samples overwrite sample slots 0 and 1.
+    buffer = add(buffer, controller(3.0), *batch(3.0, 2))
+    np.testing.assert_array_equal(buffer.source, [0, 0, 1, 1, 2, 2])
+    np.testing.assert_array_equal(buffer.X[:2, 0, 0], [3.0, 3.0])
+    np.testing.assert_allclose(buffer.controllers.k[0, 0, 0], 3.0)
+    # Uneven batch: 3 samples from controller slot 1 wrap around; slot 1's old samples go away.
+    buffer = add(buffer, controller(4.0), *batch(4.0, 3))
+    np.testing.assert_array_equal(buffer.X[:, 0, 0], [3.0, 3.0, 4.0, 4.0, 4.0, 2.0])
+    np.testing.assert_array_equal(buffer.source, [0, 0, 1, 1, 1, 2])
+    np.testing.assert_array_equal(samples_per_controller(buffer), [2, 3, 1])
+    assert int(buffer.next_sample) == 5 and int(buffer.next_controller) == 2
+    assert add._cache_size() <= 3  # one per batch size (and mask) seen in this module
+
+
+def test_eviction_without_overwriting_invalidates():
+    """Samples of an evicted controller that were not overwritten are masked out."""
+    buffer = init_buffer(8, 2, T, dX, dU, jnp.float64)
+    buffer = add(buffer, controller(0.0), *batch(0.0, 3))
+    buffer = add(buffer, controller(1.0), *batch(1.0, 1))
+    buffer = add(buffer, controller(2.0), *batch(2.0, 1))  # reuses slot 0
+    np.testing.assert_array_equal(buffer.valid, [False, False, False, True, True, 0, 0, 0])
+    np.testing.assert_array_equal(samples_per_controller(buffer), [1, 1])
+
+
+def test_mask_on_add():
+    buffer = init_buffer(4, 2, T, dX, dU, jnp.float64)
+    buffer = add(buffer, controller(0.0), *batch(0.0, 3), mask=jnp.array([1, 0, 1]))
+    np.testing.assert_array_equal(buffer.valid, [True, False, True, False])
+
+
+def test_action_log_density_matches_scipy():
+    ctrl = controller(0.4)
+    X = jax.random.normal(jax.random.key(0), (T + 1, dX))
+    U = jax.random.normal(jax.random.key(1), (T, dU))
+    ref = sum(
+        stats.multivariate_normal(
+            np.asarray(ctrl.K[t] @ X[t] + ctrl.k[t]), np.asarray(ctrl.cov[t])
+        ).logpdf(np.asarray(U[t]))
+        for t in range(T)
+    )
+    np.testing.assert_allclose(action_log_density(ctrl, X, U), ref, rtol=1e-12)
+    buffer = add(init_buffer(2, 2, T, dX, dU, jnp.float64), ctrl, X[None], U[None])
+    log_q = controller_log_densities(buffer, X, U)
+    np.testing.assert_allclose(log_q[0], ref, rtol=1e-12)
+    assert log_q[1] == -jnp.inf
+
+
+def test_vmap_over_conditions():
+    buffers = jax.vmap(lambda _: init_buffer(4, 2, T, dX, dU, jnp.float64))(jnp.arange(3))
+    ctrls = jax.vmap(controller)(jnp.arange(3.0))
+    X = jnp.zeros((3, 2, T + 1, dX))
+    U = jnp.zeros((3, 2, T, dU))
+    buffers = jax.jit(jax.vmap(buffer_add))(buffers, ctrls, X, U)
+    assert buffers.valid.shape == (3, 4) and buffers.valid[:, :2].all()
+    np.testing.assert_allclose(buffers.controllers.k[:, 0, 0, 0], [0.0, 1.0, 2.0])
