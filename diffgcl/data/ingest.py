@@ -42,7 +42,7 @@ from typing import Any
 
 import numpy as np
 
-from diffgcl.data.bags import BagError, TopicMessages, read_topics, topic_types
+from diffgcl.data.bags import BagError, TopicMessages, open_bag, read_topics
 from diffgcl.data.demos import DemoSet
 from diffgcl.data.topics import CommandSpec, RangeSensorSpec, TopicMap, default_topic_map
 
@@ -564,11 +564,13 @@ def ingest_bag(
     path = Path(path)
     tm = topic_map or default_topic_map()
     cfg = config or IngestConfig()
-    present = topic_types(path)
+    with open_bag(path) as reader:
+        present = {c.topic for c in reader.connections}
+        bag_start = reader.start_time if reader.connections else None
     roles = tm.topics()
     for role in ("position", "heading", "commands"):
         if roles[role] not in present:
-            raise BagError(path, f"missing required topic for {role}", roles[role])
+            raise BagError(path, f"missing required topic for {role}", roles[role], bag_start)
     data = {
         topic: order_by_stamp(path, msgs)
         for topic, msgs in read_topics(path, set(roles.values())).items()
@@ -686,6 +688,7 @@ def ingest_bag(
             "episode_in_bag": index,
             "t_start": grid[0] * 1e-9,
             "t_end": grid[-1] * 1e-9,
+            "t_start_ns": int(grid[0]),
             "segmentation": segmentation,
             "datum": list(datum) if datum is not None else None,
             "set": info.get("set"),
