@@ -52,13 +52,13 @@ def test_gradient_matches_explicit_gcl_gradient():
     def objective(net):
         return gcl_objective(NET, params.replace(net=net), demos, samples, config)[0]
 
-    auto = jax.grad(objective)(params.net)
+    auto = jax.jit(jax.grad(objective))(params.net)
 
     def traj_cost(net, X, U):
         return NET.trajectory_cost(params.replace(net=net), X, U)
 
-    grad_c = jax.vmap(jax.grad(traj_cost), in_axes=(None, 0, 0))
-    cost = jax.vmap(traj_cost, in_axes=(None, 0, 0))
+    grad_c = jax.jit(jax.vmap(jax.grad(traj_cost), in_axes=(None, 0, 0)))
+    cost = jax.jit(jax.vmap(traj_cost, in_axes=(None, 0, 0)))
     g_demo = grad_c(params.net, demos.X, demos.U)
     X_all = jnp.concatenate([samples.X, demos.X])
     U_all = jnp.concatenate([samples.U, demos.U])
@@ -92,6 +92,10 @@ def rollout(key, controller):
     return jnp.concatenate([X, x_T[None]]), U
 
 
+rollouts = jax.jit(jax.vmap(rollout, in_axes=(0, None)))
+fuse = jax.jit(fusion_weighted_samples, static_argnums=4)
+
+
 def test_fusion_weights_give_unbiased_self_normalised_estimates():
     """Samples from a mixture of three controllers, reweighted to a target controller p by
     p(τ) / q_fusion(τ), estimate E_p[f] as well as direct sampling from p does."""
@@ -103,14 +107,10 @@ def test_fusion_weights_give_unbiased_self_normalised_estimates():
     buffer = init_buffer(3 * n, 3, T, dX, dU, jnp.float64)
     for i, ctrl in enumerate(proposals):
         keys = jax.random.split(jax.random.key(i), n)
-        X, U = jax.vmap(rollout, in_axes=(0, None))(keys, ctrl)
+        X, U = rollouts(keys, ctrl)
         buffer = buffer_add(buffer, ctrl, X, U)
-    demo_X, demo_U = jax.vmap(rollout, in_axes=(0, None))(
-        jax.random.split(jax.random.key(9), 5), target
-    )
-    samples, _ = fusion_weighted_samples(
-        buffer, fit_demo_controller(demo_X, demo_U), demo_X, demo_U, config
-    )
+    demo_X, demo_U = rollouts(jax.random.split(jax.random.key(9), 5), target)
+    samples, _ = fuse(buffer, fit_demo_controller(demo_X, demo_U), demo_X, demo_U, config)
 
     log_p = jax.vmap(action_log_density, in_axes=(None, 0, 0))(target, samples.X, samples.U)
     w = jax.nn.softmax(log_p - samples.log_q)
@@ -120,9 +120,7 @@ def test_fusion_weights_give_unbiased_self_normalised_estimates():
 
     values = jax.vmap(f)(samples.X, samples.U)
     estimate = jnp.sum(w * values)
-    direct_X, direct_U = jax.vmap(rollout, in_axes=(0, None))(
-        jax.random.split(jax.random.key(99), 20000), target
-    )
+    direct_X, direct_U = rollouts(jax.random.split(jax.random.key(99), 20000), target)
     direct = jax.vmap(f)(direct_X, direct_U)
     stderr = direct.std() / jnp.sqrt(direct.size)
     ess = 1.0 / jnp.sum(w**2)
@@ -139,19 +137,17 @@ def test_fusion_weights_give_unbiased_self_normalised_estimates():
 def test_uniform_mixture_includes_demo_controller():
     ctrl_a, ctrl_b = gaussian_controller(0.0, 1.0), gaussian_controller(0.5, 0.5)
     buffer = init_buffer(8, 2, T, dX, dU, jnp.float64)
-    X, U = jax.vmap(rollout, in_axes=(0, None))(jax.random.split(jax.random.key(0), 4), ctrl_a)
+    X, U = rollouts(jax.random.split(jax.random.key(0), 4), ctrl_a)
     buffer = buffer_add(buffer, ctrl_a, X, U)
     demo_ctrl = gaussian_controller(1.0, 0.2)
     config = GCLConfig(mixture="uniform")
-    samples, demos = fusion_weighted_samples(buffer, demo_ctrl, X[:2], U[:2], config)
+    samples, demos = fuse(buffer, demo_ctrl, X[:2], U[:2], config)
 
     dens = jnp.array([action_log_density(c, X[1], U[1]) for c in (ctrl_a, demo_ctrl)])
     np.testing.assert_allclose(samples.log_q[1], jax.nn.logsumexp(dens) - jnp.log(2.0))
     np.testing.assert_allclose(demos.log_q[1], samples.log_q[1])
     # Without fusion, each trajectory keeps its own proposal's density.
-    samples, demos = fusion_weighted_samples(
-        buffer, demo_ctrl, X[:2], U[:2], GCLConfig(fusion=False)
-    )
+    samples, demos = fuse(buffer, demo_ctrl, X[:2], U[:2], GCLConfig(fusion=False))
     np.testing.assert_allclose(samples.log_q[1], dens[0])
     np.testing.assert_allclose(demos.log_q[1], dens[1])
     del ctrl_b
@@ -186,10 +182,13 @@ def test_objective_finite_with_one_sample_and_unlikely_samples(demos_in_partitio
         X=random_set(jax.random.key(4), 4).X * 1e3
     )
     empty = one.replace(valid=jnp.zeros(1, bool))
+    value_and_grad = jax.jit(
+        jax.value_and_grad(
+            lambda net, s: gcl_objective(NET, params.replace(net=net), demos, s, config)[0]
+        )
+    )
     for samples in (one, unlikely, empty):
-        loss, grads = jax.value_and_grad(
-            lambda net, s=samples: gcl_objective(NET, params.replace(net=net), demos, s, config)[0]
-        )(params.net)
+        loss, grads = value_and_grad(params.net, samples)
         assert jnp.isfinite(loss)
         assert all(jnp.all(jnp.isfinite(g)) for g in jax.tree.leaves(grads))
 
@@ -199,15 +198,11 @@ def buffer_and_demos(config, n_iter=2):
     buffer = init_buffer(12, 3, T, dX, dU, jnp.float64)
     for i in range(n_iter):
         keys = jax.random.split(jax.random.key(10 + i), 4)
-        X, U = jax.vmap(rollout, in_axes=(0, None))(keys, ctrl)
+        X, U = rollouts(keys, ctrl)
         buffer = buffer_add(buffer, ctrl, X, U)
     demo_ctrl = gaussian_controller(0.5, 0.2)
-    demo_X, demo_U = jax.vmap(rollout, in_axes=(0, None))(
-        jax.random.split(jax.random.key(5), 6), demo_ctrl
-    )
-    samples, demos = fusion_weighted_samples(
-        buffer, fit_demo_controller(demo_X, demo_U), demo_X, demo_U, config
-    )
+    demo_X, demo_U = rollouts(jax.random.split(jax.random.key(5), 6), demo_ctrl)
+    samples, demos = fuse(buffer, fit_demo_controller(demo_X, demo_U), demo_X, demo_U, config)
     add_condition = lambda tree: jax.tree.map(lambda a: a[None], tree)  # C = 1
     return add_condition(samples), add_condition(demos)
 
@@ -247,7 +242,7 @@ def test_minibatch_of_partly_empty_buffer_is_masked():
 
 def test_demo_controller_recovers_a_known_controller():
     ctrl = gaussian_controller(0.3, 0.25)
-    X, U = jax.vmap(rollout, in_axes=(0, None))(jax.random.split(jax.random.key(0), 4000), ctrl)
+    X, U = rollouts(jax.random.split(jax.random.key(0), 4000), ctrl)
     fitted = fit_demo_controller(X, U, ridge=1e-6, cov_floor=0.0)
     np.testing.assert_allclose(fitted.K[1:], ctrl.K[1:], atol=0.05)  # x is fixed at t = 0
     np.testing.assert_allclose(fitted.k[1:], ctrl.k[1:], atol=0.05)  # k_0 absorbs K_0 x_0
@@ -264,8 +259,8 @@ def test_model_log_density_matches_scipy_and_samples_feed_the_learner():
     x0 = InitialStateDistribution(mean=jnp.array([1.0, 0.0]), cov=0.04 * jnp.eye(dX))
     demo_X = jax.random.normal(jax.random.key(0), (3, T + 1, dX))
     demo_U = jax.random.normal(jax.random.key(1), (3, T, dU))
-    samples, demos = model_weighted_samples(
-        jax.random.key(2), dyn, ctrl, x0, demo_X, demo_U, 6, dyn_jitter=0.0
+    samples, demos = jax.jit(model_weighted_samples, static_argnums=(6, 7))(
+        jax.random.key(2), dyn, ctrl, x0, demo_X, demo_U, 6, 0.0
     )
     X, U = samples.X[0], samples.U[0]
     ref = stats.multivariate_normal(np.asarray(x0.mean), np.asarray(x0.cov)).logpdf(X[0])
@@ -280,7 +275,7 @@ def test_model_log_density_matches_scipy_and_samples_feed_the_learner():
     )
     learner = make_cost_learner(NET, GCLConfig(n_steps=2, sample_batch=4, demo_batch=2))
     add_condition = lambda tree: jax.tree.map(lambda a: a[None], tree)
-    _, metrics = learner.update(
+    _, metrics = jax.jit(learner.update)(
         learner.init(jax.random.key(3)),
         jax.random.key(4),
         add_condition(demos),
