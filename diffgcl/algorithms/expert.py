@@ -85,7 +85,7 @@ def make_demo_set(
         U=U,
         O=O,
         mask=np.ones(X.shape[:2], dtype=np.float32),
-        dt=float(env.dt),
+        dt=float(f"{float(env.dt):.7g}"),  # a float32 timestep stored as its decimal value
         env=env.name,
         episodes=episodes,
     )
