@@ -124,7 +124,7 @@ def test_arm_gps_32_seeds():
     assert not bool(metrics.c_step_failed.any())
 
 
-def test_cli_registers_gps_and_demos_subcommands(tmp_path):
+def test_cli_registers_gps_and_demos_subcommands(tmp_path, monkeypatch):
     import argparse
 
     from diffgcl.algorithms import gps_cli
@@ -140,3 +140,7 @@ def test_cli_registers_gps_and_demos_subcommands(tmp_path):
     assert args.command == "demos" and args.num_demos == 7 and callable(args.func)
     with pytest.raises(ValueError, match="dynamics"):
         GPSConfig(dynamics="magic")
+    # The commands return exit codes (diffgcl.cli.main passes them to sys.exit).
+    monkeypatch.setattr(gps_cli, "run_arm_gps", lambda a: {"success_rate": 0.0})
+    args = parser.parse_args(["gps"])
+    assert args.func(args) == 1

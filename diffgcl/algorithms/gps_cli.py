@@ -321,7 +321,7 @@ def register(subparsers) -> None:
     """Add the ``gps`` and ``demos`` subcommands to an argparse ``subparsers`` object."""
     gps = subparsers.add_parser("gps", help="GPS on the arm with the expert cost over seeds")
     add_gps_arguments(gps)
-    gps.set_defaults(func=lambda args: run_arm_gps(args))
+    gps.set_defaults(func=_gps_command)
 
     demos = subparsers.add_parser("demos", help="train a GPS expert on the arm, write demos")
     demos.add_argument("out", type=Path, help="dataset folder (demos.npz + meta.json)")
@@ -338,7 +338,12 @@ def register(subparsers) -> None:
     demos.set_defaults(func=_demos_command)
 
 
-def _demos_command(args) -> None:
+def _gps_command(args) -> int:
+    """Exit code 0 when at least one seed succeeded, 1 otherwise."""
+    return 0 if run_arm_gps(args)["success_rate"] > 0 else 1
+
+
+def _demos_command(args) -> int:
     """Train on seeds seed, seed+1, ... (up to 8) until one succeeds; write its demos."""
     if args.x64:
         jax.config.update("jax_enable_x64", True)
@@ -352,3 +357,4 @@ def _demos_command(args) -> None:
     report_failures(result["metrics"], seeds)
     args.write_demos = args.out
     _write_demos(env, result, seeds, args)
+    return 0
