@@ -245,3 +245,21 @@ def test_commands_are_saturated():
     np.testing.assert_allclose(cmd, [params.max_thrust, -params.max_nozzle])
     cmd = H.clip_command(params, jnp.array([-1e6, 0.1]))
     np.testing.assert_allclose(cmd, [-0.4 * params.max_thrust, 0.1])
+
+
+def test_hull_mjcf_that_breaks_the_trick_is_rejected(tmp_path):
+    from pathlib import Path
+
+    from diffgcl.sim.mjcf import MJCFError, resolve_mjcf
+
+    text = Path(resolve_mjcf(H.MJCF_NAME)).read_text()
+    off_centre = tmp_path / "off_centre.xml"
+    off_centre.write_text(text.replace('<inertial pos="0 0 0"', '<inertial pos="1 0 0"'))
+    with pytest.raises(MJCFError, match="off_centre.xml.*centre of mass"):
+        make_hull_env(mjcf=str(off_centre))
+    no_material = tmp_path / "no_material.xml"
+    body = text.split("<asset>")[0] + text.split("</asset>")[1]
+    no_material.write_text(body.replace('material="water"', "").replace('material="hull"', ""))
+    no_material.write_text(no_material.read_text().replace('material="pole"', ""))
+    with pytest.raises(MJCFError, match="material"):
+        make_hull_env(mjcf=str(no_material))

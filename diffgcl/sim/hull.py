@@ -266,6 +266,22 @@ def check_hull_model(model: mujoco.MjModel, path: str = MJCF_NAME) -> None:
     want = [mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE]
     if types != want:
         raise MJCFError(f"{path}: the hull needs joints slide x, slide y, hinge z; got {types}")
+    if model.nbody < 2 or model.body(1).name != "hull" or set(model.jnt_bodyid) != {1}:
+        raise MJCFError(f"{path}: body 1 must be the 'hull' and carry all three joints")
+    axes = np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1]], dtype=float)
+    if not np.allclose(model.jnt_axis, axes):
+        raise MJCFError(f"{path}: the hull joints must be along world x, y and z")
+    # The computed-acceleration trick needs the joint mass matrix to be diag(m, m, I_z).
+    # body_inertia[1, 2] is I_z only if the inertia frame is the body frame.
+    if (
+        not np.allclose(model.body_ipos[1], 0.0)
+        or not np.allclose(np.abs(model.body_iquat[1]), [1, 0, 0, 0])
+        or np.any(model.dof_armature != 0)
+    ):
+        raise MJCFError(
+            f"{path}: the hull's inertial frame must be its body frame (centre of mass on the "
+            "joint axes, principal axes aligned) and the joints must have no armature"
+        )
     if model.nmat < 1:
         raise MJCFError(f"{path}: mjx.ray needs at least one <material> in the model")
     if model.opt.integrator != mujoco.mjtIntegrator.mjINT_EULER:
