@@ -107,7 +107,11 @@ def test_gauss_newton_expansion_of_the_network():
     params = net.init(jax.random.key(0))
     X = jax.random.normal(jax.random.key(1), (T + 1, dX))
     U = jax.random.normal(jax.random.key(2), (T, dU))
-    quad = expand_residual_cost(net.bind_residual(params), X, U)
+    quad = net.expand(params, X, U)
+    direct = expand_residual_cost(net.bind_residual(params), X, U)
+    np.testing.assert_allclose(quad.l_xx, direct.l_xx)
+    full = net.expand(params, X, U, gauss_newton=False)
+    np.testing.assert_allclose(full.l_x, quad.l_x, rtol=1e-10)  # same gradient, other Hessian
     U_all = jnp.concatenate([U, jnp.zeros((1, dU))])
     np.testing.assert_allclose(quad.l, jax.vmap(net.bind(params))(X, U_all, jnp.arange(T + 1)))
     assert jnp.all(jnp.linalg.eigvalsh(quad.l_xx) >= -1e-10)

@@ -33,7 +33,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from diffgcl.types import Array, CostFn, PRNGKey
+from diffgcl.costs.expansion import expand_cost, expand_residual_cost
+from diffgcl.types import Array, CostFn, PRNGKey, QuadraticCost
 
 
 @struct.dataclass
@@ -253,6 +254,16 @@ class CostNetwork:
     def bind_residual(self, params: CostParams):
         """``r(x, u, t)`` for fixed parameters (``c = ‖r‖²``)."""
         return lambda x, u, t: self.residual(params, x, u, t)
+
+    def expand(
+        self, params: CostParams, X: Array, U: Array, *, gauss_newton: bool = True
+    ) -> QuadraticCost:
+        """Quadratic expansion about ``X: [T+1, dX]``, ``U: [T, dU]`` (T+1 entries, about the
+        trajectory; see :mod:`diffgcl.costs.expansion`). Gauss–Newton (PSD ``l_xx = 2JᵀAᵀAJ``) by
+        default, the full Hessian with ``gauss_newton=False``."""
+        if gauss_newton:
+            return expand_residual_cost(self.bind_residual(params), X, U)
+        return expand_cost(self.bind(params), X, U)
 
     def step_costs(self, params: CostParams, X: Array, U: Array) -> Array:
         """Per-step costs of one trajectory ``X: [T+1, dX]``, ``U: [T, dU]`` -> ``[T+1]``.
