@@ -429,3 +429,28 @@ def test_cli_synth_inspect_convert(tmp_path, capsys):
     demos = DemoSet.load(demos_dir)
     assert demos.num_episodes == 1 and demos.env == "hull"
     assert IngestConfig().dt == pytest.approx(demos.dt)
+
+
+def test_pointcloud2_points_in_hull_frame():
+    """A PointCloud2 (x, y, z float32, 16-byte points) becomes hull-frame points (mount applied)."""
+    from diffgcl.data.bags import TopicMessages
+    from diffgcl.data.ingest import scan_points
+    from diffgcl.data.topics import RangeSensorSpec
+
+    store = typestore_for("ros2-mcap")
+    pts = np.array([[10.0, 0.0, 1.0, 0.0], [0.0, -5.0, 0.5, 0.0], [np.nan, 1.0, 0.0, 0.0]])
+    field = store.types["sensor_msgs/msg/PointField"]
+    fields = [field(n, 4 * k, 7, 1) for k, n in enumerate("xyz")]
+    time = store.types["builtin_interfaces/msg/Time"](1, 0)
+    header = store.types["std_msgs/msg/Header"](time, "lidar")
+    raw = pts.astype("<f4").tobytes()
+    cloud = store.types["sensor_msgs/msg/PointCloud2"](
+        header, 1, 3, fields, False, 16, 48, np.frombuffer(raw, np.uint8), True
+    )
+    data = TopicMessages(
+        "/cloud", "sensor_msgs/msg/PointCloud2", np.array([NS]), np.array([NS]), (cloud,)
+    )
+    spec = RangeSensorSpec("/cloud", mount=(2.0, 0.0, np.pi / 2))
+    (xy,) = scan_points("test.bag", data, spec)
+    # Sensor yawed 90° to port, 2 m ahead: (10, 0) -> (2, 10); (0, -5) -> (7, 0); NaN dropped.
+    np.testing.assert_allclose(xy, [[2.0, 10.0], [7.0, 0.0]], atol=1e-6)

@@ -24,7 +24,15 @@ for bit alike:
    reduced by :func:`diffgcl.sim.sensors.ranges_from_points` to the simulator's beams, held until
    the next scan (at most ``max_gap``).
 6. *Output.* Episodes are padded to a common horizon (last value held, mask 0) into a
-   :class:`~diffgcl.data.demos.DemoSet`, with metadata per episode.
+   :class:`~diffgcl.data.demos.DemoSet` (``env="hull"``; X, U in the layout of
+   :mod:`diffgcl.sim.hull`, O in that of :func:`diffgcl.envs.hull.observation`), with metadata
+   per episode: ``source`` (bag), ``episode_in_bag``, ``t_start``/``t_end`` (s) and
+   ``t_start_ns``, ``steps`` (T of this episode before padding), ``cropped``, ``segmentation``
+   (``markers``/``rules``), ``datum``, ``set``, ``obstacle`` (pole colour from the marker, else
+   ``unknown``), ``obstacle_xy``, ``swerve_side`` (``left``/``right``, from the track at the
+   closest approach), ``valid_fraction``, ``actuators`` (``feedback``/``reconstructed``),
+   ``lidar``/``radar`` (present) and ``*_valid_fraction``, ``warnings``, plus any other
+   ``key=value`` of the start marker.
 
 Bad input raises :class:`~diffgcl.data.bags.BagError` (one line naming file, topic and time);
 recoverable problems (short dropouts, a missing optional LiDAR, NavSatFix without a fix) become
