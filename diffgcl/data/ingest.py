@@ -640,7 +640,10 @@ def ingest_bag(
             vel, ok_v = interpolate(velocity, grid)
         else:
             vel = np.gradient(pos, cfg.dt, axis=0) if grid.size > 1 else np.zeros_like(pos)
-            ok_v = ok_p & np.roll(ok_p, 1) & np.roll(ok_p, -1)
+            # np.gradient: central differences inside, one-sided at the ends.
+            before = np.concatenate([ok_p[:1], ok_p[:-1]])
+            after = np.concatenate([ok_p[1:], ok_p[-1:]])
+            ok_v = ok_p & before & after
         if yaw_rate is not None:
             rate, ok_r = interpolate(yaw_rate, grid)
         else:
