@@ -203,7 +203,9 @@ def test_observation_noise_only_with_key(env64):
     _, o_again, _ = step_and_sense(env64, x0s, u, jax.random.key(4))
     np.testing.assert_array_equal(o, o_again)  # no key, no noise
     nb = env64.layout.num_beams
-    assert not np.allclose(on[:, :nb], o[:, :nb])
+    hit = np.asarray(o[:, :nb]) < env64.layout.max_ranges
+    assert hit.any() and not np.allclose(on[:, :nb][hit], o[:, :nb][hit])
+    np.testing.assert_array_equal(on[:, :nb][~hit], o[:, :nb][~hit])  # no return, no noise
     np.testing.assert_array_equal(on[:, nb:], o[:, nb:])  # heading and speed are exact
     assert (np.asarray(on[:, :nb]) <= env64.layout.max_ranges + 1e-12).all()
     assert (np.asarray(on[:, :nb]) >= 0).all()
@@ -237,6 +239,9 @@ def test_expert_cost_smooth_and_success(env64):
     X_far[:, 1] += 6.0  # ends 6 m off the course line
     assert not bool(success(jnp.asarray(X_far)))
     assert env.clearance(jnp.asarray(X_swerve[135])) > 0  # abeam of the pole
+    m = jax.jit(env.metrics)(jnp.asarray(X_swerve))
+    assert bool(m["success"]) and float(m["max_cross_track"]) == pytest.approx(8.0, abs=0.01)
+    assert float(m["min_clearance"]) == pytest.approx(8.0 - 0.5 - 1.7, abs=0.1)
 
 
 def test_commands_are_saturated():

@@ -195,6 +195,18 @@ class HullEnv:
         gap = jnp.hypot(along - jnp.clip(along, -half, half), across)
         return gap - self.pole_radius - 0.5 * self.params.beam
 
+    def metrics(self, X: Array) -> dict[str, Array]:
+        """X: [T+1, 10] -> scalars: minimum clearance (m), final cross-track error (m), final
+        heading error (rad), largest cross-track excursion (m) and success."""
+        psi = X[-1, hull_sim.IX_PSI]
+        return {
+            "min_clearance": jnp.min(jax.vmap(self.clearance)(X)),
+            "final_cross_track": jnp.abs(X[-1, hull_sim.IX_PY] - self.course_y),
+            "final_heading_error": jnp.abs(jnp.arctan2(jnp.sin(psi), jnp.cos(psi))),
+            "max_cross_track": jnp.max(jnp.abs(X[:, hull_sim.IX_PY] - self.course_y)),
+            "success": self.success(X),
+        }
+
     def success(self, X: Array) -> Array:
         """X: [T+1, 10] -> bool: never touches the pole, and ends near the course line.
 

@@ -181,10 +181,12 @@ def ray_distances(model: mjx.Model, data: mjx.Data, layout: SensorLayout, body: 
 
 
 def add_range_noise(ranges: Array, layout: SensorLayout, key: jax.Array) -> Array:
-    """ranges: [num_beams] plus Gaussian noise of the layout's std, clipped to [0, max range]."""
+    """ranges: [num_beams] plus Gaussian noise of the layout's std on the beams that see
+    something, clipped to [0, max range]; a beam without a return stays at its maximum range."""
     std = jnp.asarray(layout.noise_stds, dtype=ranges.dtype)
+    max_range = jnp.asarray(layout.max_ranges, dtype=ranges.dtype)
     noisy = ranges + std * jax.random.normal(key, ranges.shape, dtype=ranges.dtype)
-    return jnp.clip(noisy, 0.0, jnp.asarray(layout.max_ranges, dtype=ranges.dtype))
+    return jnp.where(ranges < max_range, jnp.clip(noisy, 0.0, max_range), max_range)
 
 
 def ranges_from_points(
