@@ -132,6 +132,7 @@ class TopicSummary:
     last_s: float
     rate_hz: float
     max_gap_s: float
+    gaps: int = 0  # intervals longer than 3x the median interval (dropouts)
 
 
 @dataclass(frozen=True)
@@ -157,7 +158,7 @@ class BagSummary:
         for t in self.topics:
             lines.append(
                 f"  {t.topic:<28} {t.msgtype:<32} {t.count:>7} msgs {t.rate_hz:>7.2f} Hz  "
-                f"max gap {t.max_gap_s:6.2f} s"
+                f"max gap {t.max_gap_s:6.2f} s  gaps {t.gaps}"
             )
         return "\n".join(lines)
 
@@ -260,6 +261,8 @@ def inspect_bag(path: str | os.PathLike) -> BagSummary:
             starts.append(t[0])
             ends.append(t[-1])
         span = t[-1] - t[0] if t.size > 1 else 0.0
+        dt = np.diff(t)
+        gaps = int(np.sum(dt > 3 * np.median(dt))) if dt.size > 2 else 0
         summaries.append(
             TopicSummary(
                 topic=topic,
@@ -268,7 +271,8 @@ def inspect_bag(path: str | os.PathLike) -> BagSummary:
                 first_s=float(t[0]) if t.size else float("nan"),
                 last_s=float(t[-1]) if t.size else float("nan"),
                 rate_hz=float((t.size - 1) / span) if span > 0 else 0.0,
-                max_gap_s=float(np.max(np.diff(t))) if t.size > 1 else 0.0,
+                max_gap_s=float(np.max(dt)) if t.size > 1 else 0.0,
+                gaps=gaps,
             )
         )
     start = min(starts) if starts else 0.0
