@@ -195,19 +195,25 @@ def plot_learning_curves(metrics, path: Path, label: str = "") -> None:
     plt.close(fig)
 
 
-def plot_arm_motion(env, X, path: Path, every: int = 5) -> None:
-    """Joint angles over time and a stroboscopic drawing of the arm (X: [T+1, dX], one run)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def arm_points(env, X) -> np.ndarray:
+    """Planar positions of the arm's bodies and sites along X: [T+1, dX] -> [T+1, P, 2]."""
     from mujoco import mjx
 
     def points(x):
         d = mjx.kinematics(env.model, env.data0.replace(qpos=x[:2]))
         return jnp.concatenate([d.xpos[1:, :2], d.site_xpos[:, :2]], axis=0)
 
-    P = np.asarray(jax.jit(jax.vmap(points))(jnp.asarray(X)))
+    return np.asarray(jax.jit(jax.vmap(points))(jnp.asarray(X)))
+
+
+def plot_arm_motion(env, X, path: Path, every: int = 5) -> None:
+    """Joint angles over time and a stroboscopic drawing of the arm (X: [T+1, dX], one run)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    P = arm_points(env, X)
     X = np.asarray(X)
     t = np.arange(X.shape[0]) * env.dt
     fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
@@ -227,6 +233,38 @@ def plot_arm_motion(env, X, path: Path, every: int = 5) -> None:
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def animate_arm(env, X, path: Path, every: int = 2) -> None:
+    """GIF of the arm along X: [T+1, dX] (every ``every``-th state, real time)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    P = arm_points(env, X)
+    reach = float(np.abs(P).max()) * 1.1
+    fig, ax = plt.subplots(figsize=(4, 4))
+    ax.set_xlim(-reach, reach)
+    ax.set_ylim(-reach, reach)
+    ax.set_aspect("equal")
+    target = arm_points(env, jnp.zeros((1, env.dX), jnp.asarray(X).dtype))[0]
+    ax.plot(target[:, 0], target[:, 1], "--", color="g", lw=1, label="target")
+    (line,) = ax.plot([], [], "-o", lw=3, ms=5)
+    title = ax.set_title("")
+    ax.legend(loc="lower left")
+    frames = list(range(0, P.shape[0], every))
+
+    def draw(i):
+        line.set_data(P[i, :, 0], P[i, :, 1])
+        title.set_text(f"t = {i * env.dt:.2f} s")
+        return line, title
+
+    anim = FuncAnimation(fig, draw, frames=frames, blit=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    anim.save(path, writer=PillowWriter(fps=max(1, round(1 / (every * env.dt)))))
     plt.close(fig)
 
 
@@ -267,6 +305,7 @@ def run_arm_gps(args) -> dict:
         final = jax.tree.map(lambda a: jnp.asarray(a[0]), result["state"].controller)
         X = mean_rollout(env, final, jnp.asarray(env.initial_states()))
         plot_arm_motion(env, X[0], args.out / "arm_gps_motion.png")
+        animate_arm(env, X[0], args.out / "arm_gps_motion.gif")
         if compare:
             plot_learning_curves(res2["metrics"], args.out / f"arm_gps_learning_{other}.png", other)
         print(f"plots in {args.out}")
