@@ -630,7 +630,8 @@ def ingest_bag(
             path, "no episode found (no markers, boat never underway)", tm.position.topic
         )
 
-    episodes = []
+    episodes: list[Episode] = []
+    too_short: list[BagError] = []
     for index, (t_a, t_b, info) in enumerate(segments):
         grid = time_grid(t_a, t_b, cfg.dt)
         ep_warnings = list(bag_warnings)
@@ -673,12 +674,18 @@ def ingest_bag(
         valid = ok_p & ok_h & ok_v & ok_r & ok_c & ok_a
         valid_s = valid.sum() * cfg.dt
         if valid_s < tm.min_episode_s:
-            raise BagError(
+            short = BagError(
                 path,
                 f"episode too short: {valid_s:.1f} s of valid data < {tm.min_episode_s:.1f} s",
                 tm.position.topic,
                 t_a,
             )
+            if segmentation == "markers":
+                raise short
+            # Rule-based segments include brief manoeuvres in harbour: skip them.
+            _warn(bag_warnings, f"{short} (segment skipped)")
+            too_short.append(short)
+            continue
         if not valid.all():
             _warn(
                 ep_warnings,
@@ -716,6 +723,8 @@ def ingest_bag(
         # at valid steps, but downstream arithmetic is safer without NaN anywhere).
         X = _fill_invalid(X, valid)
         episodes.append(Episode(t=grid, X=X, U=U, O=O, mask=valid, meta=meta))
+    if not episodes:
+        raise too_short[0]
     return episodes
 
 
