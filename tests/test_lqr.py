@@ -211,6 +211,10 @@ def test_hopeless_cost_reports_failure_and_returns_previous():
     np.testing.assert_array_equal(controller.K, prev.K)
     np.testing.assert_array_equal(controller.cov, prev.cov)
     assert "failed" in dual.describe(info)[0]
+    # The same in float32: the search still stops at max_eta with the right code.
+    f32 = lambda tree: jax.tree.map(lambda a: a.astype(jnp.float32), tree)
+    ctrl32, info32 = c_step(f32(dynamics), f32(bad), f32(prev), f32(x0), 0.5, 1.0)
+    assert int(info32.status) == dual.FAILED_NOT_PD and ctrl32.K.dtype == jnp.float32
     nan_dyn = dynamics.replace(A=dynamics.A.at[3, 0, 0].set(jnp.nan))
     controller, info = c_step(nan_dyn, cost, prev, x0, 0.5, 1.0)
     assert not bool(info.ok)

@@ -137,7 +137,7 @@ def c_step(
         converged = usable & (jnp.abs(kl - epsilon) <= tol * epsilon)
         too_small = usable & ~converged & (kl < epsilon)
         too_large = ~converged & ~too_small  # includes non-PD / non-finite
-        at_min = s.eta <= min_eta * (1.0 + 1e-9)
+        at_min = log_eta <= log_min + 1e-4  # log-space margins hold in float32 too
         inactive = too_small & at_min
 
         # Accepted or feasible-side controller: keep it as the best so far.
@@ -174,7 +174,7 @@ def c_step(
         log_next = jnp.clip(log_next, log_min, log_max)
 
         it = s.it + 1
-        gave_up_pd = not_pd & ~has_hi & (s.eta >= max_eta * (1.0 - 1e-9))
+        gave_up_pd = not_pd & ~has_hi & (log_eta >= log_max - 1e-4)
         out_of_trips = it >= max_iter
         done = converged | inactive | gave_up_pd | out_of_trips
         status = jnp.where(
