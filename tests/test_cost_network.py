@@ -3,6 +3,7 @@
 import jax
 import jax.numpy as jnp
 import numpy as np
+import optax
 import pytest
 
 from diffgcl.costs.expansion import expand_residual_cost
@@ -136,3 +137,25 @@ def test_jit_vmap_no_recompile():
     second = batch_cost(params, X + 1.0, U)
     assert first.shape == (4,) and jnp.all(jnp.isfinite(second))
     assert batch_cost._cache_size() == 1
+
+
+def test_linear_skip_features_and_weight_decay_mask():
+    from diffgcl.costs.gcl import GCLConfig, make_cost_learner
+
+    net = make_network(linear_skip=True)
+    params = net.init(jax.random.key(0))
+    x = jnp.array([0.3, -1.2, 2.5])
+    np.testing.assert_allclose(net.features(params, x)[:dX], x, rtol=1e-12)
+    assert net.features(params, x).shape == (5,)
+    # Decoupled decay shrinks the MLP and A but leaves the linear branch alone when grads vanish.
+    learner = make_cost_learner(net, GCLConfig(weight_decay=0.5, learning_rate=0.1))
+    state = learner.init(jax.random.key(0), params)
+    zero = jax.tree.map(jnp.zeros_like, params.net)
+    updates, _ = learner.optimiser.update(zero, state.opt_state, params.net)
+    new_net = optax.apply_updates(params.net, updates)
+    features = new_net["features"]
+    np.testing.assert_allclose(
+        features["linear"]["kernel"], params.net["features"]["linear"]["kernel"]
+    )
+    old_mlp = params.net["features"]["mlp"]["Dense_0"]["kernel"]
+    np.testing.assert_allclose(features["mlp"]["Dense_0"]["kernel"], old_mlp * (1 - 0.05))

@@ -77,7 +77,8 @@ class GCLConfig:
     n_steps: Adam steps per update; pretrain_steps: steps of :meth:`CostLearner.pretrain`;
     demo_batch / sample_batch: minibatch sizes per condition (capped at what is available);
     learning_rate, max_grad_norm: Adam and global-norm clipping; weight_decay: decoupled (AdamW)
-    decay of the network's weight matrices (``features`` kernels and ``A``), pulling unused
+    decay of the network's weight matrices (``features`` kernels other than the ``linear_skip``
+    branch, and ``A``), pulling unused
     nonlinear features towards zero; fusion: mixture proposal (else
     each sample's own proposal); demos_in_partition: append the demo batch to the partition term;
     mixture: ``"counts"`` or ``"uniform"`` (see the module docstring); lcr_weight, mono_weight,
@@ -277,13 +278,16 @@ def _minibatch(key: PRNGKey, data: WeightedSamples, n: int) -> WeightedSamples:
 class CostLearner(NamedTuple):
     """``init(key) -> GCLState``, ``update(state, key, demos, samples) -> (state, metrics)`` (
     ``config.n_steps`` steps; metrics stacked [n_steps]) and ``pretrain`` (same, with
-    ``config.pretrain_steps``). ``demos: WeightedSamples [C, N]``, ``samples: WeightedSamples
-    [C, S]`` with a leading condition axis. Pure; jit at the call site."""
+    ``config.pretrain_steps``), ``loss(params, demos, samples)`` on whole sets, and the optax
+    ``optimiser`` acting on ``params.net``. ``demos: WeightedSamples [C, N]``,
+    ``samples: WeightedSamples [C, S]`` with a leading condition axis. Pure; jit at the call
+    site."""
 
     init: Callable[..., GCLState]
     update: Callable[..., tuple[GCLState, GCLMetrics]]
     pretrain: Callable[..., tuple[GCLState, GCLMetrics]]
     loss: Callable[..., tuple[Array, GCLMetrics]]
+    optimiser: optax.GradientTransformation
 
 
 def make_cost_learner(network: CostNetwork, config: GCLConfig) -> CostLearner:
@@ -292,10 +296,11 @@ def make_cost_learner(network: CostNetwork, config: GCLConfig) -> CostLearner:
     def decay_mask(net: dict) -> dict:
         mask = jax.tree.map(lambda _: False, net)
         mask["A"] = True
-        mask["features"] = {
-            layer: {name: name == "kernel" for name in leaves}
-            for layer, leaves in net["features"].items()
-        }
+        # Every kernel under ``features`` except the linear branch (``linear_skip``).
+        mask["features"] = jax.tree_util.tree_map_with_path(
+            lambda path, _: path[-1].key == "kernel" and path[0].key != "linear",
+            net["features"],
+        )
         return mask
 
     optimiser = optax.chain(
@@ -347,4 +352,4 @@ def make_cost_learner(network: CostNetwork, config: GCLConfig) -> CostLearner:
     def loss(params: CostParams, demos, samples):
         return batch_loss(params.net, params.norm, demos, samples)
 
-    return CostLearner(init=init, update=update, pretrain=pretrain, loss=loss)
+    return CostLearner(init=init, update=update, pretrain=pretrain, loss=loss, optimiser=optimiser)

@@ -64,9 +64,12 @@ class CostNetworkConfig:
 
     hidden: widths of the ReLU layers of ``y`` (the paper: 2 layers of 24–52 units);
     n_features: F, the size of ``y`` (the paper: 20–100); identity_init: GCL's ``[I; −I]`` first
-    layer; action_weight: initial ``w_u``; learn_action_weight: train ``log w_u`` with the rest;
-    time_input: append ``t / horizon`` to the input; std_floor: lower bound of the normaliser's
-    standard deviation (in the state's own units); a_scale: standard deviation of the initial
+    layer; linear_skip: the first dX features are a linear map of ``z`` (initialised to ``z``)
+    next to the MLP's ``n_features − dX`` (replaces the identity path; with weight decay on the
+    MLP the cost stays quadratic unless the data ask for more); action_weight: initial ``w_u``;
+    learn_action_weight: train ``log w_u`` with the rest; time_input: append ``t / horizon`` to
+    the input; std_floor: lower bound of the normaliser's standard deviation (in the state's own
+    units); a_scale: standard deviation of the initial
     entries of ``A`` times ``sqrt(F)``.
     """
 
@@ -75,6 +78,7 @@ class CostNetworkConfig:
     identity_init: bool = True
     action_weight: float = 1e-2
     learn_action_weight: bool = True
+    linear_skip: bool = False
     time_input: bool = False
     horizon: int = 1
     std_floor: float = 1e-2
@@ -115,16 +119,33 @@ class FeatureNetwork(nn.Module):
     """``y(z)``: ReLU MLP from the network input ``z: [dIn]`` to features ``[n_features]``.
 
     ``identity_dim`` > 0 switches on the identity path for the first ``identity_dim`` inputs.
+    ``linear_dim`` > 0: the first ``linear_dim`` features come from a separate linear layer named
+    ``linear`` (initialised to pass the first ``linear_dim`` inputs through), the other
+    ``n_features − linear_dim`` from the MLP.
     """
 
     hidden: Sequence[int]
     n_features: int
     identity_dim: int = 0
+    linear_dim: int = 0
     param_dtype: jnp.dtype = jnp.float32
 
     @nn.compact
     def __call__(self, z: Array) -> Array:
         base = nn.initializers.lecun_normal()
+        if self.linear_dim:
+            lin_init = _identity_kernel(0, 0, self.linear_dim, "direct", base)
+            y_lin = nn.Dense(
+                self.linear_dim, kernel_init=lin_init, param_dtype=self.param_dtype, name="linear"
+            )(z)
+            mlp = FeatureNetwork(
+                self.hidden,
+                self.n_features - self.linear_dim,
+                identity_dim=0,
+                param_dtype=self.param_dtype,
+                name="mlp",
+            )
+            return jnp.concatenate([y_lin, mlp(z)])
         h = z
         d = self.identity_dim
         for i, width in enumerate(self.hidden):
@@ -182,6 +203,7 @@ class CostNetwork:
             hidden=self.config.hidden,
             n_features=self.config.n_features,
             identity_dim=self.dX if self.config.identity_init else 0,
+            linear_dim=self.dX if self.config.linear_skip else 0,
             param_dtype=self.param_dtype,
         )
 
@@ -191,8 +213,10 @@ class CostNetwork:
     def init(self, key: PRNGKey) -> CostParams:
         """Random parameters (identity path if configured), unit normaliser."""
         cfg = self.config
+        if cfg.linear_skip and cfg.n_features <= self.dX:
+            raise ValueError(f"linear_skip needs n_features > dX = {self.dX}")
         too_narrow = min(cfg.hidden, default=2 * self.dX) < 2 * self.dX or cfg.n_features < self.dX
-        if cfg.identity_init and too_narrow:
+        if cfg.identity_init and not cfg.linear_skip and too_narrow:
             raise ValueError(
                 f"identity_init needs hidden widths >= 2*dX = {2 * self.dX} and n_features >= "
                 f"dX = {self.dX}; got hidden={cfg.hidden}, n_features={cfg.n_features}"
