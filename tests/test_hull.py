@@ -162,8 +162,11 @@ def test_env_protocol_steps_under_jit_and_vmap_float64(env64):
     step_and_sense(env, x1, u + 1.0, jax.random.key(1))
     assert step_and_sense._cache_size() == 1, "a second call with new data recompiled"
     # At cruise thrust straight ahead the speed is held (the cruise thrust is the equilibrium).
-    x = rollout(env.params, x0s[0], jnp.broadcast_to(jnp.array([env.cruise_thrust, 0.0]), (300, 2)))
-    np.testing.assert_allclose(x[:, H.IX_VX], env.cruise_speed, rtol=1e-9)
+    straight = jnp.broadcast_to(jnp.array([env.cruise_thrust, 0.0]), (300, 2))
+    for x0 in x0s:
+        X = rollout(env.params, x0, straight)
+        np.testing.assert_allclose(X[:, H.IX_VX], env.cruise_speed, rtol=1e-9)
+        assert not bool(env.success(X)), "holding the course must hit the pole"
 
 
 def test_env_float32():
