@@ -125,6 +125,12 @@ def main(argv=None) -> int:
         "--format", default="ros1", choices=("ros1", "ros2-sqlite3", "ros2-mcap"), dest="fmt"
     )
     parser.add_argument("--step", default="mjx", choices=("mjx", "ode"), help="sysid rollouts")
+    parser.add_argument(
+        "--method",
+        default="gauss-newton",
+        choices=("gauss-newton", "adam"),
+        help="sysid optimiser (adam: 400 iterations, learning rate 0.02)",
+    )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
     enable_compilation_cache()
@@ -133,7 +139,12 @@ def main(argv=None) -> int:
     cfg = dataclasses.replace(
         base,
         synth=dataclasses.replace(base.synth, fmt=args.fmt, seed=args.seed),
-        sysid=dataclasses.replace(base.sysid, step=args.step),
+        sysid=dataclasses.replace(
+            base.sysid,
+            step=args.step,
+            method=args.method,
+            **({"iterations": 400, "learning_rate": 0.02} if args.method == "adam" else {}),
+        ),
     )
     args.out.mkdir(parents=True, exist_ok=True)
     timings = {}
