@@ -144,3 +144,25 @@ def test_cli_registers_gps_and_demos_subcommands(tmp_path, monkeypatch):
     monkeypatch.setattr(gps_cli, "run_arm_gps", lambda a: {"success_rate": 0.0})
     args = parser.parse_args(["gps"])
     assert args.func(args) == 1
+
+
+def test_gps_reports_c_step_failures_without_nan(capsys):
+    from diffgcl.algorithms.gps_cli import report_failures
+
+    env = PointMass()
+
+    def hopeless(x, u, t):  # concave in u beyond any eta the search may try
+        return env.expert_cost(x, u, t) - 1e22 * jnp.sum(u**2)
+
+    config = GPSConfig(iterations=2, num_samples=3, init_var=1.0)
+    gps = make_gps(config, env, hopeless, true_cost=env.expert_cost)
+    state, metrics = jax.jit(gps.train)(jax.random.PRNGKey(0))
+    assert bool(metrics.c_step_failed.all())
+    for leaf in jax.tree.leaves((state, metrics)):
+        assert np.all(np.isfinite(leaf))
+    # The controller is kept (the initial one) and the host loop names every failure.
+    np.testing.assert_array_equal(state.controller.K, np.zeros_like(state.controller.K))
+    batched = jax.tree.map(lambda a: np.asarray(a)[None], metrics)
+    lines = report_failures(batched, [7])
+    assert len(lines) == 4 and "not positive definite" in lines[0] and "seed 7" in lines[0]
+    assert "C-step failure" in capsys.readouterr().out
