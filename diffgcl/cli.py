@@ -14,7 +14,7 @@ import importlib
 import sys
 import time
 
-SUBCOMMAND_MODULES: tuple[str, ...] = ("diffgcl.algorithms.gps_cli",)
+SUBCOMMAND_MODULES: tuple[str, ...] = ("diffgcl.algorithms.gps_cli", "diffgcl.data.bags_cli")
 
 
 def cmd_envs(args: argparse.Namespace) -> int:
