@@ -115,6 +115,8 @@ def test_ranges_from_points_matches_rays_on_synthetic_scene(scene, k):
     pts = pole_points(qpos, pole, POLE_RADIUS - rho)
     from_points = ranges_from_points(pts, LAYOUT, point_radius=rho)
     np.testing.assert_allclose(from_points, np.asarray(ranges), atol=2e-3)
+    chunked = ranges_from_points(pts, LAYOUT, point_radius=rho, chunk=97)
+    np.testing.assert_array_equal(chunked, from_points)
 
 
 def test_ranges_from_points_exact_cases():

@@ -190,7 +190,10 @@ def add_range_noise(ranges: Array, layout: SensorLayout, key: jax.Array) -> Arra
 
 
 def ranges_from_points(
-    points_xy: np.ndarray, layout: SensorLayout, point_radius: float | None = None
+    points_xy: np.ndarray,
+    layout: SensorLayout,
+    point_radius: float | None = None,
+    chunk: int = 4096,
 ) -> np.ndarray:
     """Reduce points in the hull frame, points_xy: [N, 2] (m), to beam readings [num_beams].
 
@@ -198,8 +201,9 @@ def ranges_from_points(
     in the horizontal plane. Every ray of the layout, from the sensor origin, reads the distance
     to the first disc boundary it crosses (0 if the origin is inside a disc); a beam reads its
     shortest ray, capped at the beam's maximum range (no disc crossed: the maximum range) --
-    exactly what :func:`range_readings` does with ``mjx.ray`` on geoms. NaN/inf points
-    (invalid returns) are ignored. Pure NumPy, one scan.
+    the same rays and reduction as :func:`range_readings`, with discs in place of geoms. NaN/inf
+    points (invalid returns) are ignored. Pure NumPy, one scan; memory is bounded by processing
+    ``chunk`` points at a time.
     """
     pts = np.asarray(points_xy, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2:
@@ -212,11 +216,15 @@ def ranges_from_points(
     if pts.shape[0] == 0:
         return max_range.copy()
     rel = pts - np.asarray(layout.origin[:2])  # [N, 2]
+    rel = rel[np.hypot(rel[:, 0], rel[:, 1]) <= max_range.max() + rho]  # nothing beyond reach
     dirs = layout.ray_directions[:, :2]  # [R, 2]
-    along = dirs @ rel.T  # [R, N]
-    lateral2 = np.sum(rel**2, axis=1)[None, :] - along**2
-    half_chord2 = rho**2 - lateral2
-    hit = (half_chord2 >= 0) & (along + np.sqrt(np.maximum(half_chord2, 0.0)) >= 0)
-    entry = np.maximum(along - np.sqrt(np.maximum(half_chord2, 0.0)), 0.0)
-    ray = np.where(hit, entry, np.inf).min(axis=1)
+    ray = np.full(dirs.shape[0], np.inf)
+    for start in range(0, rel.shape[0], chunk):
+        block = rel[start : start + chunk]
+        along = dirs @ block.T  # [R, n]
+        lateral2 = np.sum(block**2, axis=1)[None, :] - along**2
+        half_chord = np.sqrt(np.maximum(rho**2 - lateral2, 0.0))
+        hit = (lateral2 <= rho**2) & (along + half_chord >= 0)
+        entry = np.maximum(along - half_chord, 0.0)
+        ray = np.minimum(ray, np.where(hit, entry, np.inf).min(axis=1))
     return np.minimum(layout.beams_from_rays(ray), max_range)
