@@ -348,7 +348,11 @@ def _gcl(**change):
 
 
 def _mlp(c: LQIOCConfig) -> LQIOCConfig:
-    network = dataclasses.replace(c.network, hidden=(16, 16), n_features=8, a_scale=0.3)
+    """A GCL-sized ReLU network (2 × 32 units, 16 features) next to linear features, with
+    decoupled weight decay on the MLP and ``A``."""
+    network = dataclasses.replace(
+        c.network, hidden=(32, 32), n_features=16, a_scale=0.3, linear_skip=True
+    )
     return dataclasses.replace(c, network=network, gcl=dataclasses.replace(c.gcl, weight_decay=1.0))
 
 
@@ -358,7 +362,7 @@ VARIANTS = {
     "no_demos_in_partition": _gcl(demos_in_partition=False),
     "no_lcr": _gcl(lcr_weight=0.0),
     "seed_model_samples": lambda c: dataclasses.replace(c, sample_source="model"),
-    "mlp_16x16_wd1": _mlp,
+    "mlp_32x32_skip_wd1": _mlp,
 }
 
 
