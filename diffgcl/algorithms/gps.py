@@ -17,6 +17,11 @@ metrics)``, the last a ``lax.scan`` over iterations; ``jax.jit(jax.vmap(train))`
 over seeds, and vmapping over a :class:`GPSHyperparams` too sweeps kl_step / init_var. The cost
 is a :data:`diffgcl.types.CostFn` closed over by these functions (or a residual function with
 ``gauss_newton=True``); the reported "true cost" may be a different function.
+
+:func:`make_gps_phases` exposes the same iteration split in two, for algorithms whose cost changes
+between them (rGCL, :mod:`diffgcl.algorithms.rgcl`): the *outer* part (steps 1–2: sample and fit
+dynamics) and the *inner* part (steps 3–5), whose cost expansion and step adaptation take the cost
+as an argument. ``make_gps``'s iteration is ``outer → expand → adapt_step → inner``.
 """
 
 from __future__ import annotations
@@ -154,6 +159,39 @@ class GPS(NamedTuple):
     train: Callable[..., tuple[GPSState, GPSMetrics]]  # (key, hparams=None)
 
 
+@struct.dataclass
+class GPSSamples:
+    """What GPS's outer loop collected for C conditions (leading axis C on every field).
+
+    X: [C, N, T+1, dX], U: [C, N, T, dU] samples of ``state.controller``; dynamics: fitted
+    linear-Gaussian dynamics, fields [C, T, ...]; x0: empirical initial-state Gaussian, mean
+    [C, dX], cov [C, dX, dX].
+    """
+
+    X: Array
+    U: Array
+    dynamics: LinearDynamics
+    x0: InitialStateDistribution
+
+
+class GPSPhases(NamedTuple):
+    """One GPS iteration in parts (pure; every function handles all C conditions at once).
+
+    init(key, hparams=None) -> GPSState; outer(state, key) -> GPSSamples (sample the current
+    controller, fit dynamics); expand(cost, samples) -> QuadraticCost [C] about the origin (the
+    GPS sample-averaged expansion of ``cost``, a residual function when ``config.gauss_newton``);
+    adapt_step(state, samples, quad) -> step_mult [C] (from the second iteration on; ``quad`` is
+    the expansion of the cost the step is judged with); inner(state, samples, quad, step_mult)
+    -> (GPSState, GPSMetrics) (C-step with ε = kl_step·step_mult·T and the metrics).
+    """
+
+    init: Callable[..., GPSState]
+    outer: Callable[[GPSState, PRNGKey], GPSSamples]
+    expand: Callable[[Callable, GPSSamples], QuadraticCost]
+    adapt_step: Callable[[GPSState, GPSSamples, QuadraticCost], Array]
+    inner: Callable[..., tuple[GPSState, GPSMetrics]]
+
+
 def empirical_x0(X0: Array, var_floor: float) -> InitialStateDistribution:
     """Gaussian over x0 from samples X0: [N, dX]: mean, and the per-dimension variance floored
     (GPS's ``x0sigma`` with ``initial_state_var``)."""
@@ -162,18 +200,17 @@ def empirical_x0(X0: Array, var_floor: float) -> InitialStateDistribution:
     return InitialStateDistribution(mean=mean, cov=jnp.diag(var))
 
 
-def make_gps(
+def make_gps_phases(
     config: GPSConfig,
     env: Env,
-    cost: CostFn,
     *,
     true_cost: CostFn | None = None,
     x0: Array | None = None,
-) -> GPS:
-    """Set up GPS on ``env`` with ``cost``; see the module docstring.
+) -> GPSPhases:
+    """Set up the parts of a GPS iteration on ``env`` (see :class:`GPSPhases`).
 
     x0: conditions [C, dX] (default ``env.initial_states()``); true_cost: the cost reported in the
-    metrics (default ``cost``; with ``gauss_newton`` a residual ``cost`` needs a ``true_cost``).
+    metrics (default ``env.expert_cost``).
     """
     from diffgcl.sim.rollout import rollout_controller, sample_controller
 
@@ -193,10 +230,7 @@ def make_gps(
                 cov_floor=config.dyn_cov_floor,
             )
 
-    if true_cost is None:
-        if config.gauss_newton:
-            raise ValueError("make_gps: gauss_newton=True needs the true_cost to report")
-        true_cost = cost
+    true_cost = env.expert_cost if true_cost is None else true_cost
     X0 = jnp.asarray(env.initial_states() if x0 is None else x0)
     if X0.ndim != 2 or X0.shape[1] != env.dX:
         raise ValueError(f"make_gps: x0 must be [C, {env.dX}], got {X0.shape}")
@@ -236,21 +270,24 @@ def make_gps(
             iteration=jnp.zeros((), jnp.int32),
         )
 
-    def one_condition(state: GPSState, x0_c: Array, key: PRNGKey) -> tuple[GPSState, GPSMetrics]:
-        """One GPS iteration for one condition (``state`` without the condition axis)."""
-        ctrl = state.controller
+    # The per-condition parts below see ``state`` without the condition axis.
+    def outer_one(ctrl: LinearGaussianController, x0_c: Array, key: PRNGKey) -> GPSSamples:
         samples = sample_controller(env, ctrl, x0_c, key, N, smooth_sigma=config.smooth_sigma)
         X, U = samples.X, samples.U
-        dynamics = fit(X, U)
-        quad = expand_cost_samples(cost, X, U, gauss_newton=config.gauss_newton)
-        quad = about_origin(quad, X.mean(axis=0), U.mean(axis=0))
-        x0_dist = empirical_x0(X[:, 0], config.x0_var)
+        return GPSSamples(X=X, U=U, dynamics=fit(X, U), x0=empirical_x0(X[:, 0], config.x0_var))
 
+    def expand_one(cost: Callable, samples: GPSSamples) -> QuadraticCost:
+        X, U = samples.X, samples.U
+        quad = expand_cost_samples(cost, X, U, gauss_newton=config.gauss_newton)
+        return about_origin(quad, X.mean(axis=0), U.mean(axis=0))
+
+    def adapt_one(state: GPSState, samples: GPSSamples, quad: QuadraticCost) -> Array:
         # Step adaptation (GPS _stepadjust), skipped on the first iteration.
+        ctrl = state.controller
         prev_dyn, prev_cost, prev_x0 = state.prev_dynamics, state.prev_cost, state.prev_x0
         J_prev = laplace_cost(forward_pass(prev_dyn, state.prev_controller, prev_x0), prev_cost)
         J_pred = laplace_cost(forward_pass(prev_dyn, ctrl, prev_x0), prev_cost)
-        J_act = laplace_cost(forward_pass(dynamics, ctrl, x0_dist), quad)
+        J_act = laplace_cost(forward_pass(samples.dynamics, ctrl, samples.x0), quad)
         adapted = adapt_step_mult(
             state.step_mult,
             J_prev,
@@ -260,14 +297,19 @@ def make_gps(
             max_step_mult=config.max_step_mult,
         )
         keep = (state.iteration == 0) | ~jnp.isfinite(adapted)
-        step_mult = jnp.where(keep, state.step_mult, adapted)
+        return jnp.where(keep, state.step_mult, adapted)
 
+    def inner_one(
+        state: GPSState, samples: GPSSamples, quad: QuadraticCost, step_mult: Array, x0_c: Array
+    ) -> tuple[GPSState, GPSMetrics]:
+        ctrl = state.controller
+        X, U = samples.X, samples.U
         epsilon = state.kl_step * step_mult * T
         new_ctrl, info = c_step(
-            dynamics,
+            samples.dynamics,
             quad,
             ctrl,
-            x0_dist,
+            samples.x0,
             epsilon,
             state.eta,
             maxent=config.maxent,
@@ -291,9 +333,9 @@ def make_gps(
         new_state = GPSState(
             controller=new_ctrl,
             prev_controller=ctrl,
-            prev_dynamics=dynamics,
+            prev_dynamics=samples.dynamics,
             prev_cost=quad,
-            prev_x0=x0_dist,
+            prev_x0=samples.x0,
             step_mult=step_mult,
             eta=info.eta,
             kl_step=state.kl_step,
@@ -313,17 +355,57 @@ def make_gps(
         kl_step=None,
         iteration=None,
     )
-    per_condition = jax.vmap(one_condition, in_axes=(state_axes, 0, 0), out_axes=(state_axes, 0))
+
+    def outer(state: GPSState, key: PRNGKey) -> GPSSamples:
+        return jax.vmap(outer_one)(state.controller, X0, jax.random.split(key, C))
+
+    def expand(cost: Callable, samples: GPSSamples) -> QuadraticCost:
+        return jax.vmap(expand_one, in_axes=(None, 0))(cost, samples)
+
+    def adapt_step(state: GPSState, samples: GPSSamples, quad: QuadraticCost) -> Array:
+        return jax.vmap(adapt_one, in_axes=(state_axes, 0, 0))(state, samples, quad)
+
+    def inner(
+        state: GPSState, samples: GPSSamples, quad: QuadraticCost, step_mult: Array
+    ) -> tuple[GPSState, GPSMetrics]:
+        return jax.vmap(inner_one, in_axes=(state_axes, 0, 0, 0, 0), out_axes=(state_axes, 0))(
+            state, samples, quad, step_mult, X0
+        )
+
+    return GPSPhases(init=init, outer=outer, expand=expand, adapt_step=adapt_step, inner=inner)
+
+
+def make_gps(
+    config: GPSConfig,
+    env: Env,
+    cost: CostFn,
+    *,
+    true_cost: CostFn | None = None,
+    x0: Array | None = None,
+) -> GPS:
+    """Set up GPS on ``env`` with ``cost``; see the module docstring.
+
+    x0: conditions [C, dX] (default ``env.initial_states()``); true_cost: the cost reported in the
+    metrics (default ``cost``; with ``gauss_newton`` a residual ``cost`` needs a ``true_cost``).
+    """
+    if true_cost is None:
+        if config.gauss_newton:
+            raise ValueError("make_gps: gauss_newton=True needs the true_cost to report")
+        true_cost = cost
+    phases = make_gps_phases(config, env, true_cost=true_cost, x0=x0)
 
     def iteration(state: GPSState, key: PRNGKey) -> tuple[GPSState, GPSMetrics]:
-        return per_condition(state, X0, jax.random.split(key, C))
+        samples = phases.outer(state, key)
+        quad = phases.expand(cost, samples)
+        step_mult = phases.adapt_step(state, samples, quad)
+        return phases.inner(state, samples, quad, step_mult)
 
     def train(key: PRNGKey, hparams: GPSHyperparams | None = None) -> tuple[GPSState, GPSMetrics]:
         key_init, key_iter = jax.random.split(key)
-        state = init(key_init, hparams)
+        state = phases.init(key_init, hparams)
         return lax.scan(iteration, state, jax.random.split(key_iter, config.iterations))
 
-    return GPS(init=init, iteration=iteration, train=train)
+    return GPS(init=phases.init, iteration=iteration, train=train)
 
 
 def first_success(success: Array) -> Array:
