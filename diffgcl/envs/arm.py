@@ -35,6 +35,7 @@ class ArmEnv:
     target: Array  # [2]
     mjcf_path: str
     torque_limit: float
+    dt: float  # from the C model: the MJX copy may hold it in float32
     horizon: int = 100
     action_weight: float = 1e-5
     success_tolerance: float = 0.1
@@ -43,10 +44,6 @@ class ArmEnv:
     dX: int = 4
     dU: int = 2
     dO: int = 6
-
-    @property
-    def dt(self) -> float:
-        return float(self.model.opt.timestep)
 
     def step(self, x: Array, u: Array) -> Array:
         """One MJX step. x: [4], u: [2] -> x': [4]."""
@@ -113,5 +110,6 @@ def make_arm_env(
         target=jnp.asarray(target, dtype),
         mjcf_path=str(path),
         torque_limit=float(torque_limit),
+        dt=float(model.opt.timestep),
         horizon=horizon,
     )
