@@ -1,0 +1,583 @@
+"""Reworked Guided Cost Learning (rGCL): GPS on a learned cost, the cost learned by GCL (DESIGN §6).
+
+The seed's rGCL alternates trajectory-optimisation GPS (:mod:`diffgcl.algorithms.gps`) with the
+sample-based MaxEnt IOC cost update of GCL (:mod:`diffgcl.costs.gcl`, Finn et al. 2016a). Two
+schedules (the seed's Fig. 3.3):
+
+* **v1** — per rGCL iteration, ``gps_per_update`` full GPS iterations with the current cost
+  (sample, fit dynamics, expand, adapt the step, C-step), then one cost update;
+* **v2** — GPS's outer loop (sample + fit dynamics), the KL step adapted with the *previous*
+  cost (Finn et al. compute it before the cost changes), the cost update, then GPS's inner loop
+  (expand the *new* cost, C-step).
+
+Before the loop the cost is pre-trained on the demos (``GCLConfig.pretrain_steps``) against the
+initial controller's samples (or, as in the seed, against the demos alone); the network's input
+normaliser is set from the demos once and then frozen, so that the cost GPS optimises only changes
+through the GCL update.
+
+Samples for the cost update (``RGCLConfig.sample_source``): ``"buffer"`` — every real sample of
+the last ``buffer_controllers`` controllers with GCL's fusion importance weights (and the demos'
+own fitted controller in the mixture); ``"model"`` — the seed's variant, ``model_samples`` fresh
+trajectories of the current controller in the fitted linear-Gaussian model with their full
+``log p(τ)``.
+
+Everything is pure: :func:`make_train` returns ``train(key, demos, hparams) -> (state, metrics)``;
+``jax.jit(jax.vmap(train))`` over keys and :class:`RGCLHyperparams` (KL step, initial controller
+variance, cost learning rate — all traced) is a sweep. The same iteration is exposed as
+``init`` / ``run`` so that a host loop (:mod:`diffgcl.algorithms.runner`) can run it in chunks
+with checkpoints; the per-iteration keys are ``fold_in(key_loop, step)``, so a chunked run equals
+an uninterrupted one.
+
+NaN guard (pure, per run): when an iteration leaves a non-finite value anywhere in the state, the
+iteration is rolled back (the previous state is kept, ``metrics.rolled_back`` is set) and the next
+step tries again with a fresh key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import struct
+from jax import lax
+
+from diffgcl.algorithms.gps import (
+    GPSConfig,
+    GPSHyperparams,
+    GPSMetrics,
+    GPSSamples,
+    GPSState,
+    make_gps_phases,
+)
+from diffgcl.costs.buffer import SampleBuffer, buffer_add, init_buffer
+from diffgcl.costs.demo_controller import fit_demo_controller
+from diffgcl.costs.gcl import (
+    GCLConfig,
+    GCLMetrics,
+    WeightedSamples,
+    fusion_weighted_samples,
+    make_cost_learner,
+)
+from diffgcl.costs.model_samples import model_weighted_samples
+from diffgcl.costs.network import (
+    CostNetwork,
+    CostNetworkConfig,
+    CostParams,
+    init_normaliser,
+    update_normaliser,
+)
+from diffgcl.sim.rollout import rollout_controller, sample_controller
+from diffgcl.types import Array, Env, LinearGaussianController, PRNGKey
+
+SCHEDULES = ("v1", "v2")
+SAMPLE_SOURCES = ("buffer", "model")
+
+
+@dataclass(frozen=True)
+class RGCLConfig:
+    """Static settings of an rGCL run (anything that changes shapes or the program).
+
+    schedule: "v1" or "v2"; iterations: rGCL iterations; gps_per_update: v1's GPS iterations per
+    cost update (v2: one outer/inner pair per iteration); gps: GPS settings (its ``iterations``
+    is unused; ``gauss_newton`` is forced on — the network cost is expanded by Gauss–Newton);
+    network, gcl: the cost and its update; sample_source: "buffer" (fusion) or "model" (the
+    seed); model_samples: generated samples per update with "model"; buffer_controllers:
+    controllers (and their samples) kept for fusion; pretrain: run the pre-training pass;
+    pretrain_with_samples: pre-train against the initial controller's samples (else the demos
+    alone form the partition, as in the seed); freeze_last: the last ``freeze_last`` iterations
+    skip the cost update (GPS polishes on a fixed cost); late_max_step_mult /
+    late_iterations: cap on step_mult over the last ``late_iterations`` iterations (a late KL cap;
+    None: off); nan_guard: roll back iterations that produce non-finite values;
+    reopt_iterations: GPS iterations of the re-optimisation check.
+    """
+
+    schedule: str = "v2"
+    iterations: int = 30
+    gps_per_update: int = 1
+    gps: GPSConfig = field(default_factory=lambda: GPSConfig(gauss_newton=True))
+    network: CostNetworkConfig = field(default_factory=CostNetworkConfig)
+    gcl: GCLConfig = field(default_factory=GCLConfig)
+    sample_source: str = "buffer"
+    model_samples: int = 10
+    buffer_controllers: int = 20
+    pretrain: bool = True
+    pretrain_with_samples: bool = True
+    freeze_last: int = 0
+    late_max_step_mult: float | None = None
+    late_iterations: int = 0
+    nan_guard: bool = True
+    reopt_iterations: int = 30
+
+    def __post_init__(self):
+        if self.schedule not in SCHEDULES:
+            raise ValueError(f"RGCLConfig: schedule {self.schedule!r}; choose one of {SCHEDULES}")
+        if self.sample_source not in SAMPLE_SOURCES:
+            raise ValueError(
+                f"RGCLConfig: sample_source {self.sample_source!r}; choose one of {SAMPLE_SOURCES}"
+            )
+        if self.iterations < 1 or self.gps_per_update < 1 or self.buffer_controllers < 1:
+            raise ValueError("RGCLConfig: iterations, gps_per_update, buffer_controllers >= 1")
+
+    @property
+    def gps_per_iteration(self) -> int:
+        """GPS C-steps per rGCL iteration (G in the metrics' shapes)."""
+        return self.gps_per_update if self.schedule == "v1" else 1
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@struct.dataclass
+class RGCLHyperparams:
+    """Traced (sweepable) scalars: kl_step (GPS base KL step), init_var (initial controller
+    variance), cost_lr (Adam learning rate of the cost update)."""
+
+    kl_step: Array
+    init_var: Array
+    cost_lr: Array
+
+
+@struct.dataclass
+class DemoBatch:
+    """Demonstrations grouped by condition: X: [C, N, T+1, dX], U: [C, N, T, dU]."""
+
+    X: Array
+    U: Array
+
+
+@struct.dataclass
+class CostState:
+    """The learned cost and its optimiser: params (:class:`CostParams`), opt_state (optax state
+    of ``params.net``, learning rate inside), step: int32 gradient steps taken."""
+
+    params: CostParams
+    opt_state: optax.OptState
+    step: Array
+
+
+@struct.dataclass
+class RGCLState:
+    """State of one rGCL run with C conditions.
+
+    gps: :class:`GPSState` (fields [C, ...]); cost: :class:`CostState`; buffer: fusion
+    :class:`SampleBuffer` with a leading [C] axis; demo_controller: the demos' fitted controller,
+    fields [C, T, ...]; iteration: int32, rGCL iterations accepted; step: int32, iterations
+    attempted (keys are ``fold_in(key_loop, step)``; differs from ``iteration`` after a rollback).
+    """
+
+    gps: GPSState
+    cost: CostState
+    buffer: SampleBuffer
+    demo_controller: LinearGaussianController
+    iteration: Array
+    step: Array
+
+
+@struct.dataclass
+class RGCLMetrics:
+    """Per rGCL iteration (a run stacks a leading [iterations] axis).
+
+    gps: :class:`GPSMetrics` with fields [G, C] (G = ``config.gps_per_iteration``); learned_cost:
+    [G, C] mean learned trajectory cost of the GPS samples; gcl: :class:`GCLMetrics` averaged over
+    the update's gradient steps (scalars; zeros on frozen iterations); cost_updated: bool;
+    rolled_back: bool, the NaN guard rejected this iteration; sample_X: [G, C, N, T+1, dX] the
+    GPS samples (for the motion plots).
+    """
+
+    gps: GPSMetrics
+    learned_cost: Array
+    sample_X: Array
+    gcl: GCLMetrics
+    cost_updated: Array
+    rolled_back: Array
+
+
+class RGCL(NamedTuple):
+    """The pure functions of :func:`make_train`.
+
+    train(key, demos, hparams=None) -> (RGCLState, RGCLMetrics [iterations]);
+    split_key(key) -> (key_init, key_loop); init(key_init, demos, hparams=None) -> RGCLState
+    (with pre-training); run(state, key_loop, demos, n) -> (state, metrics [n]) (``n`` static);
+    default_hparams() -> RGCLHyperparams; network: the :class:`CostNetwork`.
+    """
+
+    train: Callable[..., tuple[RGCLState, RGCLMetrics]]
+    split_key: Callable[[PRNGKey], tuple[PRNGKey, PRNGKey]]
+    init: Callable[..., RGCLState]
+    run: Callable[..., tuple[RGCLState, RGCLMetrics]]
+    default_hparams: Callable[[], RGCLHyperparams]
+    network: CostNetwork
+
+
+def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
+    """The cost network of ``config`` for ``env`` (parameters in the run's float dtype)."""
+    dtype = jnp.asarray(env.initial_states()).dtype
+    return CostNetwork(config.network, env.dX, env.dU, param_dtype=dtype)
+
+
+def _make_optimiser(config: GCLConfig, learning_rate: Array) -> optax.GradientTransformation:
+    """Clipped AdamW on ``params.net`` with a traced learning rate (kept in the optimiser state)."""
+
+    def decay_mask(net: dict) -> dict:
+        mask = jax.tree.map(lambda _: False, net)
+        mask["A"] = True
+        mask["features"] = jax.tree_util.tree_map_with_path(
+            lambda path, _: path[-1].key == "kernel" and path[0].key != "linear",
+            net["features"],
+        )
+        return mask
+
+    def chain(learning_rate):
+        return optax.chain(
+            optax.clip_by_global_norm(config.max_grad_norm),
+            optax.adamw(learning_rate, weight_decay=config.weight_decay, mask=decay_mask),
+        )
+
+    return optax.inject_hyperparams(chain)(learning_rate=learning_rate)
+
+
+def _pick(key: PRNGKey, data: WeightedSamples, n: int) -> WeightedSamples:
+    """``n`` distinct valid entries of ``data: [S]`` drawn uniformly (Gumbel top-k); entries past
+    the number of valid ones come back with ``valid=False``."""
+    n = min(n, data.valid.shape[0])
+    score = jax.random.gumbel(key, data.valid.shape, data.X.dtype)
+    _, idx = lax.top_k(jnp.where(data.valid, score, -jnp.inf), n)
+    return jax.tree.map(lambda a: a[idx], data)
+
+
+def make_train(config: RGCLConfig, env: Env) -> RGCL:
+    """Set up rGCL on ``env``; see the module docstring and :class:`RGCL`."""
+    gps_config = dataclasses.replace(config.gps, gauss_newton=True)
+    phases = make_gps_phases(gps_config, env, true_cost=env.expert_cost)
+    network = make_network(config, env)
+    learner = make_cost_learner(network, config.gcl)
+    X0 = jnp.asarray(env.initial_states())
+    dtype = X0.dtype
+    C, T, dX, dU = X0.shape[0], env.horizon, env.dX, env.dU
+    N = gps_config.num_samples
+    G = config.gps_per_iteration
+    gcl_cfg = config.gcl
+
+    def default_hparams() -> RGCLHyperparams:
+        return RGCLHyperparams(
+            kl_step=jnp.asarray(gps_config.kl_step, dtype),
+            init_var=jnp.asarray(gps_config.init_var, dtype),
+            cost_lr=jnp.asarray(gcl_cfg.learning_rate, dtype),
+        )
+
+    def residual(params: CostParams):
+        return network.bind_residual(params)
+
+    def learned_cost(params: CostParams, samples: GPSSamples) -> Array:
+        """Mean learned trajectory cost of the samples per condition: [C]."""
+        per_traj = jax.vmap(jax.vmap(network.trajectory_cost, (None, 0, 0)), (None, 0, 0))
+        return per_traj(params, samples.X, samples.U).mean(axis=-1)
+
+    # ---- cost update -------------------------------------------------------------------------
+
+    def weighted_sets(
+        buffer: SampleBuffer,
+        demo_ctrl: LinearGaussianController,
+        demos: DemoBatch,
+        key: PRNGKey,
+        samples: GPSSamples | None = None,
+        sample_ctrl: LinearGaussianController | None = None,
+    ) -> tuple[WeightedSamples, WeightedSamples]:
+        """(samples [C, S], demos [C, N]) with their log proposal densities."""
+        if config.sample_source == "model" and samples is not None:
+            return jax.vmap(model_weighted_samples, in_axes=(0, 0, 0, 0, 0, 0, None))(
+                jax.random.split(key, C),
+                samples.dynamics,
+                sample_ctrl,
+                samples.x0,
+                demos.X,
+                demos.U,
+                config.model_samples,
+            )
+        return jax.vmap(fusion_weighted_samples, in_axes=(0, 0, 0, 0, None))(
+            buffer, demo_ctrl, demos.X, demos.U, gcl_cfg
+        )
+
+    def optimise(cost: CostState, key: PRNGKey, demos_w, samples_w, n_steps: int):
+        """``n_steps`` minibatch Adam steps; returns (CostState, GCLMetrics averaged)."""
+        optimiser = _make_optimiser(gcl_cfg, jnp.zeros((), dtype))  # lr read from opt_state
+
+        def step(cost: CostState, key: PRNGKey):
+            key_demo, key_samp = jax.random.split(key)
+            pick = jax.vmap(_pick, in_axes=(0, 0, None))
+            d = pick(jax.random.split(key_demo, C), demos_w, gcl_cfg.demo_batch)
+            s = pick(jax.random.split(key_samp, C), samples_w, gcl_cfg.sample_batch)
+
+            def loss(net):
+                return learner.loss(cost.params.replace(net=net), d, s)
+
+            grads, metrics = jax.grad(loss, has_aux=True)(cost.params.net)
+            updates, opt_state = optimiser.update(grads, cost.opt_state, cost.params.net)
+            net = optax.apply_updates(cost.params.net, updates)
+            new = CostState(
+                params=cost.params.replace(net=net), opt_state=opt_state, step=cost.step + 1
+            )
+            return new, metrics.replace(grad_norm=optax.tree.norm(grads))
+
+        if n_steps == 0:
+            zero = jnp.zeros((), dtype)
+            return cost, GCLMetrics(*(zero for _ in range(7)))
+        cost, metrics = lax.scan(step, cost, jax.random.split(key, n_steps))
+        return cost, jax.tree.map(jnp.mean, metrics)
+
+    # ---- init (with pre-training) --------------------------------------------------------------
+
+    def split_key(key: PRNGKey) -> tuple[PRNGKey, PRNGKey]:
+        key_init, key_loop = jax.random.split(key)
+        return key_init, key_loop
+
+    def init(key: PRNGKey, demos: DemoBatch, hparams: RGCLHyperparams | None = None) -> RGCLState:
+        hp = default_hparams() if hparams is None else hparams
+        key_gps, key_net, key_samples, key_pretrain = jax.random.split(key, 4)
+        gps = phases.init(key_gps, GPSHyperparams(kl_step=hp.kl_step, init_var=hp.init_var))
+        params = network.init(key_net)
+        norm = update_normaliser(init_normaliser(dX, dtype), demos.X)
+        params = params.replace(norm=norm)
+        optimiser = _make_optimiser(gcl_cfg, hp.cost_lr)
+        cost = CostState(
+            params=params, opt_state=optimiser.init(params.net), step=jnp.zeros((), jnp.int32)
+        )
+        buffer = jax.vmap(
+            lambda _: init_buffer(
+                N * config.buffer_controllers, config.buffer_controllers, T, dX, dU, dtype
+            )
+        )(jnp.arange(C))
+        demo_ctrl = jax.vmap(fit_demo_controller)(demos.X, demos.U)
+        if config.pretrain and gcl_cfg.pretrain_steps > 0:
+            pre_buffer = buffer
+            if config.pretrain_with_samples:
+                # The initial controller's samples (no dynamics fit needed here).
+                sample = lambda ctrl, x0, k: sample_controller(
+                    env, ctrl, x0, k, N, smooth_sigma=gps_config.smooth_sigma
+                )
+                samples = jax.vmap(sample)(gps.controller, X0, jax.random.split(key_samples, C))
+                pre_buffer = jax.vmap(buffer_add)(buffer, gps.controller, samples.X, samples.U)
+            samples_w, demos_w = weighted_sets(
+                pre_buffer, demo_ctrl, demos, key_samples, None, None
+            )
+            cost, _ = optimise(cost, key_pretrain, demos_w, samples_w, gcl_cfg.pretrain_steps)
+        return RGCLState(
+            gps=gps,
+            cost=cost,
+            buffer=buffer,
+            demo_controller=demo_ctrl,
+            iteration=jnp.zeros((), jnp.int32),
+            step=jnp.zeros((), jnp.int32),
+        )
+
+    # ---- one rGCL iteration ------------------------------------------------------------------
+
+    def cap_step(state: RGCLState, step_mult: Array) -> Array:
+        if config.late_max_step_mult is None or config.late_iterations <= 0:
+            return step_mult
+        late = state.iteration >= config.iterations - config.late_iterations
+        return jnp.where(late, jnp.minimum(step_mult, config.late_max_step_mult), step_mult)
+
+    def cost_step(state: RGCLState, cost: CostState, key, demos, samples, sample_ctrl, buffer):
+        """The cost update (or none on frozen iterations)."""
+        key_sets, key_opt = jax.random.split(key)
+        samples_w, demos_w = weighted_sets(
+            buffer, state.demo_controller, demos, key_sets, samples, sample_ctrl
+        )
+        new, metrics = optimise(cost, key_opt, demos_w, samples_w, gcl_cfg.n_steps)
+        update = state.iteration < config.iterations - config.freeze_last
+        new = jax.tree.map(lambda a, b: jnp.where(update, a, b), new, cost)
+        metrics = jax.tree.map(lambda m: jnp.where(update, m, 0.0), metrics)
+        return new, metrics, update
+
+    def iteration_v2(state: RGCLState, key: PRNGKey, demos: DemoBatch):
+        key_outer, key_cost = jax.random.split(key)
+        gps = state.gps
+        samples = phases.outer(gps, key_outer)
+        # The step is judged with the cost the current controller was optimised for.
+        quad_prev = phases.expand(residual(state.cost.params), samples)
+        step_mult = cap_step(state, phases.adapt_step(gps, samples, quad_prev))
+        buffer = jax.vmap(buffer_add)(state.buffer, gps.controller, samples.X, samples.U)
+        cost, gcl_metrics, updated = cost_step(
+            state, state.cost, key_cost, demos, samples, gps.controller, buffer
+        )
+        quad = phases.expand(residual(cost.params), samples)
+        gps, gps_metrics = phases.inner(gps, samples, quad, step_mult)
+        metrics = RGCLMetrics(
+            gps=jax.tree.map(lambda a: a[None], gps_metrics),
+            learned_cost=learned_cost(cost.params, samples)[None],
+            sample_X=samples.X[None],
+            gcl=gcl_metrics,
+            cost_updated=updated,
+            rolled_back=jnp.zeros((), bool),
+        )
+        return state.replace(gps=gps, cost=cost, buffer=buffer), metrics
+
+    def iteration_v1(state: RGCLState, key: PRNGKey, demos: DemoBatch):
+        key_gps, key_cost = jax.random.split(key)
+        params = state.cost.params
+
+        def gps_iteration(carry, key):
+            gps, buffer, _ = carry
+            samples = phases.outer(gps, key)
+            quad = phases.expand(residual(params), samples)
+            step_mult = cap_step(state, phases.adapt_step(gps, samples, quad))
+            buffer = jax.vmap(buffer_add)(buffer, gps.controller, samples.X, samples.U)
+            new_gps, m = phases.inner(gps, samples, quad, step_mult)
+            return (new_gps, buffer, samples), (m, learned_cost(params, samples), samples.X)
+
+        empty = jax.tree.map(
+            lambda s: jnp.zeros(s.shape, s.dtype),
+            jax.eval_shape(lambda: phases.outer(state.gps, key_gps)),
+        )
+        (gps, buffer, samples), (gps_metrics, lc, sample_X) = lax.scan(
+            gps_iteration, (state.gps, state.buffer, empty), jax.random.split(key_gps, G)
+        )
+        # The model variant generates from the last fitted model and the controller it sampled.
+        cost, gcl_metrics, updated = cost_step(
+            state, state.cost, key_cost, demos, samples, gps.prev_controller, buffer
+        )
+        metrics = RGCLMetrics(
+            gps=gps_metrics,
+            learned_cost=lc,
+            sample_X=sample_X,
+            gcl=gcl_metrics,
+            cost_updated=updated,
+            rolled_back=jnp.zeros((), bool),
+        )
+        return state.replace(gps=gps, cost=cost, buffer=buffer), metrics
+
+    one_iteration = iteration_v1 if config.schedule == "v1" else iteration_v2
+
+    def guarded(state: RGCLState, key_loop: PRNGKey, demos: DemoBatch):
+        key = jax.random.fold_in(key_loop, state.step)
+        new, metrics = one_iteration(state, key, demos)
+        new = new.replace(iteration=state.iteration + 1, step=state.step + 1)
+        if not config.nan_guard:
+            return new, metrics
+        finite = jnp.all(
+            jnp.stack(
+                [
+                    jnp.all(jnp.isfinite(leaf))
+                    for leaf in jax.tree.leaves(new)
+                    if jnp.issubdtype(leaf.dtype, jnp.inexact)
+                ]
+            )
+        )
+        kept = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
+        kept = kept.replace(step=state.step + 1)
+        return kept, metrics.replace(rolled_back=~finite)
+
+    def run(state: RGCLState, key_loop: PRNGKey, demos: DemoBatch, n: int):
+        return lax.scan(lambda s, _: guarded(s, key_loop, demos), state, None, length=n)
+
+    def train(key: PRNGKey, demos: DemoBatch, hparams: RGCLHyperparams | None = None):
+        key_init, key_loop = split_key(key)
+        state = init(key_init, demos, hparams)
+        return run(state, key_loop, demos, config.iterations)
+
+    return RGCL(
+        train=train,
+        split_key=split_key,
+        init=init,
+        run=run,
+        default_hparams=default_hparams,
+        network=network,
+    )
+
+
+# ---- evaluation (pure, one run) -----------------------------------------------------------------
+
+
+def final_rollouts(env: Env, controller: LinearGaussianController) -> Array:
+    """Noise-free rollouts of controllers (fields [C, T, ...]) from the env's conditions:
+    X [C, T+1, dX]."""
+    X0 = jnp.asarray(env.initial_states())
+    T = controller.K.shape[-3]
+
+    def one(ctrl, x0):
+        return rollout_controller(env, ctrl, x0, jnp.zeros((T, env.dU), x0.dtype)).X
+
+    return jax.vmap(one)(controller, X0)
+
+
+def make_reoptimise(config: RGCLConfig, env: Env, network: CostNetwork):
+    """``reopt(key, params, hparams=None) -> (GPSState, GPSMetrics [iterations, C])``: a fresh
+    initial controller optimised by GPS on the frozen learned cost ``params`` (Gauss–Newton), the
+    metrics reporting the true cost and success. ``config.reopt_iterations`` iterations."""
+    gps_config = dataclasses.replace(config.gps, gauss_newton=True)
+    phases = make_gps_phases(gps_config, env, true_cost=env.expert_cost)
+
+    def reopt(key: PRNGKey, params: CostParams, hparams: RGCLHyperparams | None = None):
+        gps_hp = None if hparams is None else GPSHyperparams(hparams.kl_step, hparams.init_var)
+        key_init, key_iter = jax.random.split(key)
+        cost = network.bind_residual(params)
+
+        def iteration(state: GPSState, key: PRNGKey):
+            samples = phases.outer(state, key)
+            quad = phases.expand(cost, samples)
+            return phases.inner(state, samples, quad, phases.adapt_step(state, samples, quad))
+
+        state = phases.init(key_init, gps_hp)
+        return lax.scan(iteration, state, jax.random.split(key_iter, config.reopt_iterations))
+
+    return reopt
+
+
+def arm_coverage(env: Env, key: PRNGKey, n: int = 2048):
+    """Coverage transitions for EPIC on the arm: joint angles uniform over the box spanned by the
+    start and the target with a 0.5 rad margin, velocities ~ N(0, 1), actions ~ N(0, 2²); the
+    successor states come from the simulator. Returns (X, U, X_next) with [n, ·] each."""
+    key_q, key_v, key_u = jax.random.split(key, 3)
+    X0 = jnp.asarray(env.initial_states())
+    dtype = X0.dtype
+    lo = jnp.minimum(X0[:, :2].min(0), 0.0) - 0.5
+    hi = jnp.maximum(X0[:, :2].max(0), 0.0) + 0.5
+    q = lo + (hi - lo) * jax.random.uniform(key_q, (n, 2), dtype)
+    v = jax.random.normal(key_v, (n, env.dX - 2), dtype)
+    X = jnp.concatenate([q, v], axis=-1)
+    U = 2.0 * jax.random.normal(key_u, (n, env.dU), dtype)
+    X_next = jax.vmap(env.step)(X, U)
+    return X, U, X_next
+
+
+def epic_to_expert(env: Env, network: CostNetwork, params: CostParams, coverage) -> Array:
+    """EPIC distance (γ = 1) between the learned per-step cost and ``env.expert_cost`` on the
+    coverage transitions ``(X, U, X_next)``; the canonicalisation uses the same set, shuffled
+    (:func:`diffgcl.eval.epic.epic_distance`)."""
+    from diffgcl.eval.epic import epic_distance
+
+    X, U, X_next = coverage
+    n = X.shape[0]
+    perm = jnp.roll(jnp.arange(n), n // 3)
+    learned = lambda x, u, x_next: network.cost(params, x, u, 0)
+    expert = lambda x, u, x_next: env.expert_cost(x, u, 0)
+    return epic_distance(learned, expert, X, U, X_next, X, U[perm], X_next)
+
+
+def demo_batch(demos, conditions: int, dtype=None) -> DemoBatch:
+    """Host-side: a :class:`DemoBatch` [C, N, ...] from a :class:`diffgcl.data.demos.DemoSet`,
+    grouping episodes by their ``condition`` metadata (all in condition 0 when absent); every
+    condition must have the same number of demos."""
+    cond = np.array(
+        [int(e.get("condition", 0)) for e in demos.episodes]
+        if demos.episodes
+        else [0] * demos.num_episodes
+    )
+    groups = [np.flatnonzero(cond == c) for c in range(conditions)]
+    sizes = {len(g) for g in groups}
+    if len(sizes) != 1 or 0 in sizes:
+        raise ValueError(
+            f"demos: need the same positive number of demos per condition; got "
+            f"{[len(g) for g in groups]} for {conditions} conditions"
+        )
+    dtype = dtype or jnp.zeros(()).dtype
+    X = np.stack([demos.X[g] for g in groups])
+    U = np.stack([demos.U[g] for g in groups])
+    return DemoBatch(X=jnp.asarray(X, dtype), U=jnp.asarray(U, dtype))

@@ -1,0 +1,327 @@
+"""Host loop around the pure rGCL core: chunks, progress, checkpoints, resume, NaN report, run dir.
+
+:func:`train_seeds` runs one rGCL configuration for several seeds as one vmapped batch. The pure
+pieces come from :func:`diffgcl.algorithms.rgcl.make_train`: ``init`` (with pre-training) once,
+then ``run`` over chunks of ``chunk`` iterations, each a jitted call. Because the per-iteration
+keys are ``fold_in(key_loop, step)``, the chunked run gives exactly the states and metrics of
+``train`` in one call, and so does a run resumed from a checkpoint.
+
+Checkpoints are plain ``np.savez`` files of the flattened state pytree (plus the metrics so far),
+written to a temporary name and renamed, every ``checkpoint_every`` iterations. Orbax would work
+too, but this state is a few MB of arrays in one process: a single atomic ``.npz`` whose leaves
+are restored into the tree structure of ``jax.eval_shape(init)`` needs no async machinery, no
+version coupling and reads back with NumPy alone.
+
+NaN guard: the core rolls back any iteration that leaves a non-finite value in the state
+(``RGCLMetrics.rolled_back``); this loop reports each one (seed, iteration). Should a chunk still
+return a non-finite state, the loop restores the state before the chunk, reports it and stops.
+"""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffgcl.algorithms.rgcl import (
+    DemoBatch,
+    RGCLConfig,
+    RGCLHyperparams,
+    RGCLMetrics,
+    RGCLState,
+    make_train,
+)
+
+CHECKPOINT = "checkpoint.npz"
+
+
+class SimulatedCrash(RuntimeError):
+    """Raised by :func:`train_seeds` with ``crash_after`` (tests of resume)."""
+
+
+@dataclass
+class RunResult:
+    """What :func:`train_seeds` returns (NumPy arrays, leading axis seeds).
+
+    state: RGCLState [S, ...]; metrics: RGCLMetrics [S, iterations, ...]; seeds; config;
+    compile_seconds: lowering + compilation of the init and chunk programs (0 when cached in this
+    process); run_seconds: execution after compilation; resumed_from: the iteration a resumed run
+    started at (0 otherwise); rollbacks: report lines of NaN-guard rollbacks.
+    """
+
+    state: RGCLState
+    metrics: RGCLMetrics
+    seeds: list[int]
+    config: RGCLConfig
+    compile_seconds: float = 0.0
+    run_seconds: float = 0.0
+    resumed_from: int = 0
+    rollbacks: list[str] = field(default_factory=list)
+
+
+def _save_checkpoint(path: Path, state, metrics, done: int, seeds) -> None:
+    leaves = jax.tree.leaves(state)
+    m_leaves = jax.tree.leaves(metrics) if metrics is not None else []
+    arrays = {f"s{i}": np.asarray(a) for i, a in enumerate(leaves)}
+    arrays.update({f"m{i}": np.asarray(a) for i, a in enumerate(m_leaves)})
+    arrays["done"] = np.asarray(done)
+    arrays["seeds"] = np.asarray(seeds)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp.npz")
+    np.savez(tmp, **arrays)
+    os.replace(tmp, path)
+
+
+def _load_checkpoint(path: Path, state_like, metrics_like):
+    with np.load(path) as f:
+        done = int(f["done"])
+        seeds = [int(s) for s in f["seeds"]]
+        s_def = jax.tree.structure(state_like)
+        state = jax.tree.unflatten(s_def, [f[f"s{i}"] for i in range(s_def.num_leaves)])
+        metrics = None
+        if done > 0:
+            m_def = jax.tree.structure(metrics_like)
+            metrics = jax.tree.unflatten(m_def, [f[f"m{i}"] for i in range(m_def.num_leaves)])
+    return state, metrics, done, seeds
+
+
+def _finite(tree) -> bool:
+    return all(
+        bool(np.all(np.isfinite(a)))
+        for a in jax.tree.leaves(tree)
+        if np.issubdtype(np.asarray(a).dtype, np.inexact)
+    )
+
+
+def _postfix(m: RGCLMetrics) -> dict:
+    """Progress-bar summary of the last iteration of a chunk (means over seeds, conditions)."""
+    last = jax.tree.map(lambda a: np.asarray(a)[:, -1], m)
+    return {
+        "true": f"{last.gps.cost[:, -1].mean():.1f}",
+        "learned": f"{last.learned_cost[:, -1].mean():.1f}",
+        "step": f"{last.gps.step_mult[:, -1].mean():.3g}",
+        "entropy": f"{last.gps.entropy[:, -1].mean():.1f}",
+        "success": f"{np.all(last.gps.success[:, -1], axis=-1).mean():.2f}",
+    }
+
+
+def train_seeds(
+    config: RGCLConfig,
+    env,
+    demos: DemoBatch,
+    seeds,
+    *,
+    hparams: RGCLHyperparams | None = None,
+    out: Path | None = None,
+    chunk: int = 5,
+    checkpoint_every: int = 5,
+    resume: bool = False,
+    progress: bool = True,
+    crash_after: int | None = None,
+) -> RunResult:
+    """Train ``config`` on ``env`` for every seed (one vmapped batch); see the module docstring.
+
+    hparams: RGCLHyperparams with a leading [S] axis (default: the config's values for all).
+    out: run folder for the checkpoint (``out/checkpoint.npz``); resume: continue from it.
+    crash_after: raise :class:`SimulatedCrash` once this many iterations are done (tests).
+    """
+    seeds = [int(s) for s in seeds]
+    S = len(seeds)
+    rgcl = make_train(config, env)
+    if hparams is None:
+        hp = rgcl.default_hparams()
+        hparams = jax.tree.map(lambda a: jnp.broadcast_to(a, (S,)), hp)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+    key_init, key_loop = jax.vmap(rgcl.split_key)(keys)
+    total = config.iterations
+    chunk = max(1, min(chunk, total))
+
+    init_fn = jax.jit(jax.vmap(rgcl.init, in_axes=(0, None, 0)))
+    programs: dict[int, object] = {}
+    compile_seconds = 0.0
+
+    def chunk_fn(n: int):
+        nonlocal compile_seconds
+        if n not in programs:
+            f = jax.jit(jax.vmap(lambda s, k, d: rgcl.run(s, k, d, n), in_axes=(0, 0, None)))
+            t0 = time.perf_counter()
+            programs[n] = f.lower(state, key_loop, demos).compile()
+            compile_seconds += time.perf_counter() - t0
+        return programs[n]
+
+    ckpt = None if out is None else Path(out) / CHECKPOINT
+    metrics_parts: list = []
+    done = 0
+    run_seconds = 0.0
+    if resume and ckpt is not None and ckpt.is_file():
+        state_like = jax.eval_shape(init_fn, key_init, demos, hparams)
+        m_like = jax.eval_shape(
+            jax.vmap(lambda s, k, d: rgcl.run(s, k, d, 1), in_axes=(0, 0, None)),
+            state_like,
+            key_loop,
+            demos,
+        )[1]
+        m_like = jax.tree.map(lambda a: jax.ShapeDtypeStruct((S, 0, *a.shape[2:]), a.dtype), m_like)
+        state, metrics, done, saved_seeds = _load_checkpoint(ckpt, state_like, m_like)
+        if saved_seeds != seeds:
+            raise ValueError(f"{ckpt}: checkpoint of seeds {saved_seeds}, not {seeds}")
+        state = jax.tree.map(jnp.asarray, state)
+        if metrics is not None:
+            metrics_parts.append(metrics)
+        print(f"resumed {ckpt} at iteration {done}/{total}")
+    else:
+        t0 = time.perf_counter()
+        compiled_init = init_fn.lower(key_init, demos, hparams).compile()
+        compile_seconds += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        state = jax.block_until_ready(compiled_init(key_init, demos, hparams))
+        run_seconds += time.perf_counter() - t0
+    resumed_from = done
+
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=total, initial=done, desc=f"rGCL {config.schedule}", unit="it")
+    rollbacks: list[str] = []
+    last_ckpt = done
+    try:
+        while done < total:
+            n = min(chunk, total - done)
+            program = chunk_fn(n)
+            t0 = time.perf_counter()
+            new_state, m = jax.block_until_ready(program(state, key_loop, demos))
+            run_seconds += time.perf_counter() - t0
+            m = jax.tree.map(np.asarray, m)
+            for s, i in np.argwhere(m.rolled_back):
+                line = f"seed {seeds[s]} iteration {done + i + 1}: non-finite state, rolled back"
+                rollbacks.append(line)
+                print("NaN guard:", line)
+            if not _finite(new_state):
+                line = f"iterations {done + 1}-{done + n}: non-finite state; restored, stopping"
+                rollbacks.append(line)
+                print("NaN guard:", line)
+                break
+            state = new_state
+            metrics_parts.append(m)
+            done += n
+            if bar is not None:
+                bar.update(n)
+                bar.set_postfix(_postfix(m))
+            if ckpt is not None and (done - last_ckpt >= checkpoint_every or done == total):
+                _save_checkpoint(ckpt, state, _concat(metrics_parts), done, seeds)
+                last_ckpt = done
+            if crash_after is not None and done >= crash_after and done < total:
+                raise SimulatedCrash(f"simulated crash after iteration {done}")
+    finally:
+        if bar is not None:
+            bar.close()
+    return RunResult(
+        state=jax.tree.map(np.asarray, state),
+        metrics=_concat(metrics_parts),
+        seeds=seeds,
+        config=config,
+        compile_seconds=compile_seconds,
+        run_seconds=run_seconds,
+        resumed_from=resumed_from,
+        rollbacks=rollbacks,
+    )
+
+
+def _concat(parts):
+    if not parts:
+        return None
+    return jax.tree.map(lambda *a: np.concatenate(a, axis=1), *parts)
+
+
+# ---- run folder ---------------------------------------------------------------------------------
+
+
+def run_summary(result: RunResult, env) -> dict:
+    """Per-seed outcome of a run: success (DESIGN §2, noise-free rollout of the final controller
+    on every condition), final distance (largest joint error at the last state, worst condition),
+    first successful iteration."""
+    from diffgcl.algorithms.rgcl import final_rollouts
+
+    X = np.asarray(
+        jax.jit(jax.vmap(lambda c: final_rollouts(env, c)))(
+            jax.tree.map(jnp.asarray, result.state.gps.controller)
+        )
+    )
+    success = np.asarray(jax.vmap(jax.vmap(env.success))(jnp.asarray(X))).all(axis=-1)
+    dist = np.abs(X[:, :, -1, :2] - np.asarray(env.target)).max(axis=(1, 2))
+    per_iter = np.all(result.metrics.gps.success[:, :, -1], axis=-1)  # [S, iterations]
+    first = [int(np.argmax(r)) + 1 if r.any() else None for r in per_iter]
+    return {
+        "seeds": result.seeds,
+        "success": success.tolist(),
+        "success_rate": float(success.mean()),
+        "final_distance": dist.tolist(),
+        "mean_final_distance": float(dist.mean()),
+        "first_success_iteration": first,
+        "final_true_cost": result.metrics.gps.cost[:, -1, -1].mean(-1).tolist(),
+        "rollbacks": result.rollbacks,
+        "c_step_failures": int(np.asarray(result.metrics.gps.c_step_failed).sum()),
+        "compile_seconds": result.compile_seconds,
+        "run_seconds": result.run_seconds,
+        "final_rollouts": X,
+    }
+
+
+def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=None) -> dict:
+    """config.json, metrics.json, metrics.csv, summary.json and the plots of a run in ``out``."""
+    from diffgcl.algorithms.rgcl import make_network
+    from diffgcl.viz import plots
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "config.json").write_text(json.dumps(result.config.to_dict(), indent=1, default=str))
+    m = result.metrics
+    summary = run_summary(result, env)
+    X_final = summary.pop("final_rollouts")
+    if extra:
+        summary.update(extra)
+    (out / "summary.json").write_text(json.dumps(summary, indent=1))
+    series = {
+        "true_cost": m.gps.cost[:, :, :, 0],
+        "learned_cost": m.learned_cost[:, :, :, 0],
+        "step_mult": m.gps.step_mult[:, :, :, 0],
+        "entropy": m.gps.entropy[:, :, :, 0],
+        "success": m.gps.success[:, :, :, 0],
+    }
+    (out / "metrics.json").write_text(
+        json.dumps(
+            {
+                "seeds": result.seeds,
+                "shape": "[seed, rGCL iteration, GPS iteration], condition 0",
+                **{k: np.asarray(v).tolist() for k, v in series.items()},
+                "gcl_loss": m.gcl.loss.tolist(),
+                "rolled_back": m.rolled_back.tolist(),
+            }
+        )
+    )
+    with open(out / "metrics.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["seed", "iteration", "gps_iteration", *series, "gcl_loss", "rolled_back"])
+        S, I, G = series["true_cost"].shape
+        for s in range(S):
+            for i in range(I):
+                for g in range(G):
+                    row = [float(series[k][s, i, g]) for k in series]
+                    w.writerow(
+                        [result.seeds[s], i + 1, g + 1, *row, float(m.gcl.loss[s, i])]
+                        + [bool(m.rolled_back[s, i])]
+                    )
+    network = make_network(result.config, env)
+    params0 = jax.tree.map(lambda a: jnp.asarray(a[0]), result.state.cost.params)
+    plots.learning_curves(m, out / "learning_curves.png", title=f"rGCL {result.config.schedule}")
+    plots.arm_motion(env, m.sample_X[0], X_final[0, 0], out / "arm_motion.png")
+    plots.cost_landscape(env, network, params0, np.asarray(demos.X[0]), out / "cost_landscape.png")
+    return summary

@@ -1,0 +1,130 @@
+"""Plots of rGCL runs (matplotlib, Agg backend; host side only).
+
+* :func:`learning_curves` — true and learned cost of the GPS samples, step_mult and controller
+  entropy per GPS iteration (mean ± std over seeds; what GPS's GUI showed), with the success rate;
+* :func:`arm_motion` — the arm's joint-space paths: the samples of every iteration coloured by
+  iteration, the final controller's noise-free rollout, and a stroboscopic drawing of it;
+* :func:`cost_landscape` — the learned cost over (q1, q2) at rest (dq = 0, u = 0) beside the
+  expert cost, with the demonstrations drawn on both.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def _plt():
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def _flat(a) -> np.ndarray:
+    """[S, I, G, C] -> [S, I·G] (condition 0)."""
+    a = np.asarray(a)[..., 0]
+    return a.reshape(a.shape[0], -1)
+
+
+def learning_curves(metrics, path: Path, title: str = "") -> None:
+    """Four panels over GPS iterations (metrics: RGCLMetrics with [S, I, G, C] GPS fields)."""
+    plt = _plt()
+    panels = (
+        ("true cost of samples", _flat(metrics.gps.cost), True),
+        ("learned cost of samples", _flat(metrics.learned_cost), True),
+        ("step_mult", _flat(metrics.gps.step_mult), True),
+        ("controller entropy (nats)", _flat(metrics.gps.entropy), False),
+    )
+    its = np.arange(1, panels[0][1].shape[1] + 1)
+    fig, axes = plt.subplots(1, 4, figsize=(17, 3.8))
+    for ax, (name, v, log) in zip(axes, panels, strict=True):
+        mean, std = v.mean(0), v.std(0)
+        ax.plot(its, mean, marker=".")
+        ax.fill_between(its, mean - std, mean + std, alpha=0.25)
+        ax.set_title(name)
+        ax.set_xlabel("GPS iteration")
+        if log and np.all(v > 0):
+            ax.set_yscale("log")
+    success = np.asarray(metrics.gps.success).all(axis=-1).reshape(len(_flat(metrics.gps.cost)), -1)
+    twin = axes[0].twinx()
+    twin.plot(its, success.mean(0), color="tab:green", ls="--", label="success rate")
+    twin.set_ylim(-0.05, 1.05)
+    twin.legend(loc="upper right")
+    fig.suptitle(f"{title} ({v.shape[0]} seeds, mean ± std)".strip())
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def arm_motion(env, sample_X, X_final, path: Path) -> None:
+    """sample_X: [I, G, C, N, T+1, dX] one seed's GPS samples; X_final: [T+1, dX] the final
+    controller's noise-free rollout (condition 0)."""
+    from diffgcl.algorithms.gps_cli import arm_points
+
+    plt = _plt()
+    q = np.asarray(sample_X)[..., 0, :, :, :2]  # [I, G, N, T+1, 2]
+    q = q.reshape(-1, *q.shape[-3:])  # [I·G, N, T+1, 2]
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.8))
+    cmap = plt.get_cmap("viridis")
+    for i in range(q.shape[0]):
+        colour = cmap(i / max(q.shape[0] - 1, 1))
+        for n in range(q.shape[1]):
+            axes[0].plot(q[i, n, :, 0], q[i, n, :, 1], color=colour, lw=0.6, alpha=0.5)
+    X_final = np.asarray(X_final)
+    axes[0].plot(X_final[:, 0], X_final[:, 1], "r-", lw=2, label="final controller mean")
+    axes[0].plot(*np.asarray(env.target), "g*", ms=14, label="target")
+    tol = env.success_tolerance
+    tx, ty = np.asarray(env.target)
+    axes[0].add_patch(plt.Rectangle((tx - tol, ty - tol), 2 * tol, 2 * tol, color="g", alpha=0.2))
+    axes[0].set_xlabel("q1 (rad)")
+    axes[0].set_ylabel("q2 (rad)")
+    axes[0].set_title("samples by iteration (dark: early, yellow: late)")
+    axes[0].legend(loc="best", fontsize=8)
+    P = arm_points(env, jnp.asarray(X_final))
+    idx = list(range(0, P.shape[0], 5)) + [P.shape[0] - 1]
+    for k, t in enumerate(idx):
+        axes[1].plot(P[t, :, 0], P[t, :, 1], "-o", color=cmap(k / max(len(idx) - 1, 1)), ms=3)
+    axes[1].set_aspect("equal")
+    axes[1].set_title("final motion, every 5 steps")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def cost_landscape(env, network, params, demo_X, path: Path, n: int = 81) -> None:
+    """Learned vs expert per-step cost at rest over a (q1, q2) grid; demo_X: [N, T+1, dX]."""
+    plt = _plt()
+    demo_X = np.asarray(demo_X)
+    lo = np.minimum(demo_X[..., :2].min(axis=(0, 1)), 0.0) - 0.7
+    hi = np.maximum(demo_X[..., :2].max(axis=(0, 1)), 0.0) + 0.7
+    q1, q2 = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n))
+    dtype = jnp.asarray(env.initial_states()).dtype
+    X = jnp.asarray(
+        np.stack([q1.ravel(), q2.ravel(), 0 * q1.ravel(), 0 * q1.ravel()], -1)[:, : env.dX], dtype
+    )
+    U = jnp.zeros((X.shape[0], env.dU), dtype)
+    learned = jax.jit(jax.vmap(lambda x, u: network.cost(params, x, u, 0)))(X, U)
+    expert = jax.jit(jax.vmap(lambda x, u: env.expert_cost(x, u, 0)))(X, U)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.6))
+    for ax, name, v in ((axes[0], "learned cost", learned), (axes[1], "expert cost", expert)):
+        v = np.asarray(v).reshape(q1.shape)
+        im = ax.contourf(q1, q2, np.log10(v - v.min() + 1e-3 * (np.ptp(v) + 1e-12)), 30)
+        fig.colorbar(im, ax=ax, label="log10(c − min c)")
+        for d in demo_X:
+            ax.plot(d[:, 0], d[:, 1], "w-", lw=0.8, alpha=0.8)
+        ax.plot(*np.asarray(env.target), "r*", ms=12)
+        ax.set_xlabel("q1 (rad)")
+        ax.set_ylabel("q2 (rad)")
+        ax.set_title(f"{name} at rest (dq = 0, u = 0); white: demos")
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
