@@ -98,7 +98,8 @@ class HullEnv:
 
     @property
     def dt(self) -> float:
-        return float(self.model.opt.timestep) * self.substeps
+        # Rounded to microseconds: the float32 MJX copy holds 0.025 as 0.0250000004.
+        return round(float(self.model.opt.timestep) * self.substeps, 6)
 
     # ---- dynamics and sensing -----------------------------------------------------------------
     def step(self, x: Array, u: Array) -> Array:
