@@ -77,11 +77,11 @@ class LQIOCConfig:
     )
     gcl: GCLConfig = field(
         default_factory=lambda: GCLConfig(
-            n_steps=50,
+            n_steps=100,
             pretrain_steps=300,
             demo_batch=10,
             sample_batch=20,
-            learning_rate=1e-2,
+            learning_rate=3e-3,
             lcr_weight=1e-3,
         )
     )
