@@ -28,9 +28,9 @@ variance, cost learning rate — all traced) is a sweep. The same iteration is e
 with checkpoints; the per-iteration keys are ``fold_in(key_loop, step)``, so a chunked run equals
 an uninterrupted one.
 
-NaN guard (pure, per run): when an iteration leaves a non-finite value anywhere in the state, the
-iteration is rolled back (the previous state is kept, ``metrics.rolled_back`` is set) and the next
-step tries again with a fresh key.
+NaN guard (pure, per run): when an iteration turns a finite value anywhere in the state into a
+non-finite one, the iteration is rolled back (the previous state is kept,
+``metrics.rolled_back`` is set) and the next step tries again with a fresh key.
 """
 
 from __future__ import annotations
@@ -461,12 +461,14 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         new = new.replace(iteration=state.iteration + 1, step=state.step + 1)
         if not config.nan_guard:
             return new, metrics
+        # Rejected when the iteration made a finite value non-finite (a swept hyperparameter
+        # that is itself not finite does not count).
         finite = jnp.all(
             jnp.stack(
                 [
-                    jnp.all(jnp.isfinite(leaf))
-                    for leaf in jax.tree.leaves(new)
-                    if jnp.issubdtype(leaf.dtype, jnp.inexact)
+                    jnp.all(jnp.isfinite(a) | ~jnp.isfinite(b))
+                    for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(state), strict=True)
+                    if jnp.issubdtype(a.dtype, jnp.inexact)
                 ]
             )
         )

@@ -12,9 +12,10 @@ too, but this state is a few MB of arrays in one process: a single atomic ``.npz
 are restored into the tree structure of ``jax.eval_shape(init)`` needs no async machinery, no
 version coupling and reads back with NumPy alone.
 
-NaN guard: the core rolls back any iteration that leaves a non-finite value in the state
+NaN guard: the core rolls back any iteration that makes a finite value of the state non-finite
 (``RGCLMetrics.rolled_back``); this loop reports each one (seed, iteration). Should a chunk still
-return a non-finite state, the loop restores the state before the chunk, reports it and stops.
+return a state with new non-finite values, the loop restores the state before the chunk, reports
+it and stops.
 """
 
 from __future__ import annotations
@@ -92,10 +93,11 @@ def _load_checkpoint(path: Path, state_like, metrics_like):
     return state, metrics, done, seeds
 
 
-def _finite(tree) -> bool:
+def _finite(new, old) -> bool:
+    """No value that was finite in ``old`` is non-finite in ``new``."""
     return all(
-        bool(np.all(np.isfinite(a)))
-        for a in jax.tree.leaves(tree)
+        bool(np.all(np.isfinite(a) | ~np.isfinite(b)))
+        for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(old), strict=True)
         if np.issubdtype(np.asarray(a).dtype, np.inexact)
     )
 
@@ -204,7 +206,7 @@ def train_seeds(
                 line = f"seed {seeds[s]} iteration {done + i + 1}: non-finite state, rolled back"
                 rollbacks.append(line)
                 print("NaN guard:", line)
-            if not _finite(new_state):
+            if not _finite(new_state, state):
                 line = f"iterations {done + 1}-{done + n}: non-finite state; restored, stopping"
                 rollbacks.append(line)
                 print("NaN guard:", line)

@@ -26,6 +26,15 @@ def _plt():
     return plt
 
 
+def _save(fig, path: Path) -> None:
+    import matplotlib.pyplot as plt
+
+    fig.tight_layout()
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
 def _flat(a) -> np.ndarray:
     """[S, I, G, C] -> [S, I·G] (condition 0)."""
     a = np.asarray(a)[..., 0]
@@ -87,16 +96,19 @@ def arm_motion(env, sample_X, X_final, path: Path) -> None:
     axes[0].set_ylabel("q2 (rad)")
     axes[0].set_title("samples by iteration (dark: early, yellow: late)")
     axes[0].legend(loc="best", fontsize=8)
+    if not hasattr(env, "model"):  # not an MJX arm: no drawing of the links
+        axes[1].plot(np.arange(X_final.shape[0]), X_final[:, :2])
+        axes[1].set_xlabel("step")
+        axes[1].set_title("final controller mean, q1 and q2")
+        _save(fig, path)
+        return
     P = arm_points(env, jnp.asarray(X_final))
     idx = list(range(0, P.shape[0], 5)) + [P.shape[0] - 1]
     for k, t in enumerate(idx):
         axes[1].plot(P[t, :, 0], P[t, :, 1], "-o", color=cmap(k / max(len(idx) - 1, 1)), ms=3)
     axes[1].set_aspect("equal")
     axes[1].set_title("final motion, every 5 steps")
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    _save(fig, path)
 
 
 def cost_landscape(env, network, params, demo_X, path: Path, n: int = 81) -> None:

@@ -1,0 +1,271 @@
+"""rGCL (diffgcl.algorithms.rgcl + runner + CLI) on a tiny linear stand-in env.
+
+The stand-in is a 2-D double integrator (one condition, T = 15) whose expert demos come from GPS
+on its known cost, so every program compiles in seconds; the arm runs in the slow tests.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffgcl.algorithms.gps import GPSConfig, make_gps
+from diffgcl.algorithms.rgcl import (
+    RGCLConfig,
+    demo_batch,
+    final_rollouts,
+    make_reoptimise,
+    make_train,
+)
+from diffgcl.costs.gcl import GCLConfig
+from diffgcl.costs.network import CostNetworkConfig
+
+
+@dataclass(frozen=True)
+class Slider:
+    """A point in the plane pushed by a force (x = [p, v], u = force), start (1.5, −1) at rest;
+    the task is to reach the origin and stay."""
+
+    name: str = "slider"
+    dX: int = 4
+    dU: int = 2
+    dO: int = 0
+    dt: float = 0.1
+    horizon: int = 15
+    mjcf_path: str = ""
+    success_tolerance: float = 0.15
+
+    @property
+    def target(self):
+        return jnp.zeros(2)
+
+    def step(self, x, u):
+        v = x[2:] + self.dt * u
+        return jnp.concatenate([x[:2] + self.dt * v, v])
+
+    def obs(self, x, key=None):
+        return jnp.zeros((0,), x.dtype)
+
+    def initial_states(self):
+        return jnp.array([[1.5, -1.0, 0.0, 0.0]])
+
+    def expert_cost(self, x, u, t):
+        return jnp.sum(x[:2] ** 2) + 0.1 * jnp.sum(x[2:] ** 2) + 1e-3 * jnp.sum(u**2)
+
+    def success(self, X):
+        return jnp.all(jnp.abs(X[-3:, :2]) < self.success_tolerance)
+
+
+def tiny_config(schedule: str = "v2", **changes) -> RGCLConfig:
+    config = RGCLConfig(
+        schedule=schedule,
+        iterations=8 if schedule == "v2" else 4,
+        gps_per_update=2,
+        gps=GPSConfig(num_samples=5, kl_step=1.0, init_var=1.0, gauss_newton=True),
+        network=CostNetworkConfig(hidden=(16,), n_features=8, action_weight=1e-2),
+        gcl=GCLConfig(
+            n_steps=10, pretrain_steps=50, learning_rate=1e-2, lcr_weight=1e-3, mono_weight=1.0
+        ),
+        buffer_controllers=6,
+        freeze_last=1,
+        reopt_iterations=8,
+    )
+    return dataclasses.replace(config, **changes)
+
+
+@pytest.fixture(scope="module")
+def slider():
+    from diffgcl.algorithms.expert import make_demo_set, sample_expert
+
+    env = Slider()
+    gps = make_gps(GPSConfig(iterations=8, init_var=1.0, kl_step=1.0), env, env.expert_cost)
+    state, metrics = jax.jit(gps.train)(jax.random.PRNGKey(0))
+    assert bool(metrics.success[-1].all())
+    traj, cond = sample_expert(
+        env, state.controller, env.initial_states(), jax.random.PRNGKey(1), 8, smooth_sigma=None
+    )
+    demos = make_demo_set(env, traj, np.asarray(cond), cost=env.expert_cost)
+    return env, demo_batch(demos, 1)
+
+
+def test_tiny_v2_learns_to_reach(slider):
+    env, demos = slider
+    rgcl = make_train(tiny_config("v2"), env)
+    state, m = jax.jit(rgcl.train)(jax.random.PRNGKey(3), demos)
+    cost = np.asarray(m.gps.cost[:, -1, 0])
+    assert m.gps.cost.shape == (8, 1, 1)
+    assert cost[-1] < 0.3 * cost[0], cost
+    X = final_rollouts(env, state.gps.controller)
+    assert bool(env.success(X[0])), X[0, -1]
+    assert not bool(m.rolled_back.any())
+    assert int(state.iteration) == 8 and int(state.cost.step) == 50 + 7 * 10
+    # The learned cost, frozen, is good enough for a fresh GPS run to succeed too.
+    _, rm = jax.jit(make_reoptimise(tiny_config("v2"), env, rgcl.network))(
+        jax.random.PRNGKey(5), state.cost.params
+    )
+    reopt_cost = np.asarray(rm.cost[:, 0])
+    assert reopt_cost[-1] < 0.3 * reopt_cost[0], reopt_cost
+
+
+@pytest.mark.parametrize("schedule", ["v1", "v2"])
+def test_batched_equals_unbatched(slider, schedule):
+    env, demos = slider
+    config = tiny_config(schedule, iterations=3)
+    rgcl = make_train(config, env)
+    keys = jax.random.split(jax.random.PRNGKey(11), 2)
+    hp = rgcl.default_hparams()
+    # A sweep over a traced hyperparameter: the two runs use different cost learning rates.
+    hps = jax.tree.map(lambda a: jnp.stack([a, a]), hp).replace(cost_lr=jnp.array([1e-2, 3e-3]))
+    batch_state, batch_m = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None, 0)))(keys, demos, hps)
+    single = jax.jit(rgcl.train)
+    G = 2 if schedule == "v1" else 1
+    assert batch_m.gps.cost.shape == (2, 3, G, 1)
+    for i in range(2):
+        state, m = single(keys[i], demos, jax.tree.map(lambda a, i=i: a[i], hps))
+        for a, b in zip(
+            jax.tree.leaves((state, m)), jax.tree.leaves((batch_state, batch_m)), strict=True
+        ):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b)[i], rtol=1e-9, atol=1e-9)
+    # Different learning rates gave different costs.
+    net = batch_state.cost.params.net["A"]
+    assert not np.allclose(net[0], net[1])
+
+
+def test_same_seed_same_result(slider):
+    env, demos = slider
+    rgcl = make_train(tiny_config("v2", iterations=2), env)
+    train = jax.jit(rgcl.train)
+    a = train(jax.random.PRNGKey(4), demos)
+    b = train(jax.random.PRNGKey(4), demos)
+    c = train(jax.random.PRNGKey(5), demos)
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+    assert not np.array_equal(np.asarray(a[1].gps.cost), np.asarray(c[1].gps.cost))
+
+
+def test_checkpoint_kill_resume_matches_uninterrupted(slider, tmp_path):
+    from diffgcl.algorithms.runner import SimulatedCrash, train_seeds
+
+    env, demos = slider
+    config = tiny_config("v2", iterations=6)
+    seeds = [0, 1]
+    full = train_seeds(config, env, demos, seeds, chunk=2, progress=False)
+    out = tmp_path / "run"
+    with pytest.raises(SimulatedCrash):
+        train_seeds(config, env, demos, seeds, out=out, chunk=2, checkpoint_every=2, crash_after=4)
+    resumed = train_seeds(config, env, demos, seeds, out=out, chunk=2, resume=True, progress=False)
+    assert resumed.resumed_from == 4
+    assert resumed.metrics.gps.cost.shape == (2, 6, 1, 1)
+    for a, b in zip(jax.tree.leaves(full.state), jax.tree.leaves(resumed.state), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    for a, b in zip(jax.tree.leaves(full.metrics), jax.tree.leaves(resumed.metrics), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    # The chunked host loop equals one jit(vmap(train)) call.
+    rgcl = make_train(config, env)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+    state, _ = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None)))(keys, demos)
+    np.testing.assert_allclose(full.state.gps.controller.K, state.gps.controller.K, rtol=1e-12)
+
+
+def test_nan_guard_rolls_back_and_reports(slider, capsys):
+    from diffgcl.algorithms.runner import train_seeds
+
+    env, demos = slider
+    # A NaN learning rate turns the cost NaN at the first update (no pre-training here).
+    config = tiny_config("v2", iterations=2, pretrain=False)
+    rgcl = make_train(config, env)
+    hp = rgcl.default_hparams().replace(cost_lr=jnp.asarray(jnp.nan))
+    hps = jax.tree.map(lambda a: a[None], hp)
+    result = train_seeds(config, env, demos, [0], hparams=hps, chunk=2, progress=False)
+    assert result.metrics.rolled_back.all()
+    assert int(result.state.iteration[0]) == 0 and int(result.state.step[0]) == 2
+    for leaf in jax.tree.leaves((result.state.gps, result.state.cost.params)):
+        assert np.all(np.isfinite(leaf))
+    assert len(result.rollbacks) == 2 and "rolled back" in capsys.readouterr().out
+
+
+def test_cli_train_eval_plot_on_stand_in(slider, tmp_path, monkeypatch):
+    import argparse
+    import json
+
+    import diffgcl.envs
+    from diffgcl.algorithms import presets, rgcl_cli
+
+    env, demos = slider
+    monkeypatch.setattr(diffgcl.envs, "make_env", lambda name, **kw: env)
+    monkeypatch.setattr(rgcl_cli, "load_demos", lambda path, env: demos)
+    monkeypatch.setitem(presets.PRESETS, "tiny", lambda: tiny_config("v2", iterations=3))
+    parser = argparse.ArgumentParser()
+    rgcl_cli.register(parser.add_subparsers(dest="command"))
+    out = tmp_path / "run"
+    args = parser.parse_args(
+        ["train", "--preset", "tiny", "--seeds", "2", "--out", str(out), "--no-progress"]
+        + ["--set", "gcl.n_steps=5", "--set", "network.hidden=(16,)"]
+    )
+    args.func(args)
+    for name in ("config.json", "metrics.json", "metrics.csv", "summary.json", "checkpoint.npz"):
+        assert (out / name).is_file(), name
+    for name in ("learning_curves.png", "arm_motion.png", "cost_landscape.png"):
+        assert (out / name).stat().st_size > 1000, name
+    config = json.loads((out / "config.json").read_text())
+    assert config["gcl"]["n_steps"] == 5 and config["iterations"] == 3
+    assert len(json.loads((out / "metrics.json").read_text())["true_cost"]) == 2
+    args = parser.parse_args(["eval", str(out)])
+    assert args.func(args) == 0
+    ev = json.loads((out / "eval.json").read_text())
+    assert 0.0 <= ev["epic_distance"] <= 1.0 and len(ev["reopt_success"]) == 2
+    args = parser.parse_args(["plot", str(out)])
+    assert args.func(args) == 0
+    args = parser.parse_args(["sweep", "--preset", "paper_v2", "--param", "cost_lr=1e-4,1e-3"])
+    assert args.param == ["cost_lr=1e-4,1e-3"] and callable(args.func)
+
+
+def test_presets_and_overrides():
+    from diffgcl.algorithms.presets import get_preset, paper_v1, paper_v2, with_overrides
+
+    v1, v2 = paper_v1(), paper_v2()
+    assert (v1.schedule, v1.iterations, v1.gps_per_update) == ("v1", 18, 5)
+    assert (v2.schedule, v2.iterations) == ("v2", 30)
+    for p in (v1, v2):
+        assert p.gps.num_samples == 5 and p.model_samples == 10 and p.sample_source == "model"
+        assert (p.gcl.demo_batch, p.gcl.sample_batch, p.gcl.n_steps) == (5, 10, 1)
+        assert p.gcl.learning_rate == 1e-4 and len(p.network.hidden) == 2
+    d = get_preset("default", "v1")
+    assert d.schedule == "v1" and d.sample_source == "buffer" and d.gcl.fusion
+    e = with_overrides(d, ["gcl.n_steps=7", "gps.maxent=True", "network.hidden=[8, 8]"])
+    assert e.gcl.n_steps == 7 and e.gps.maxent and e.network.hidden == (8, 8)
+    assert d.gcl.n_steps != 7  # never mutated
+    with pytest.raises(ValueError, match="no field"):
+        with_overrides(d, ["gcl.nope=1"])
+    with pytest.raises(ValueError, match="schedule"):
+        get_preset("paper_v1", "v2")
+
+
+@pytest.mark.slow
+def test_arm_experiment_fast(tmp_path):
+    import json
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).parents[1] / "experiments" / "arm_rgcl.py"
+    out = tmp_path / "s.json"
+    subprocess.run(
+        [sys.executable, str(script), "--fast", "--json", str(out)], check=True, timeout=3000
+    )
+    s = json.loads(out.read_text())
+    for key in (
+        "success_rate_v1",
+        "success_rate_v2",
+        "reopt_success_rate",
+        "epic_distance",
+        "seconds_per_run_after_compile",
+        "compile_seconds",
+        "sweep_speedup",
+    ):
+        assert key in s, key
