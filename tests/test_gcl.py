@@ -4,6 +4,7 @@ the seed's model-sampled variant, and the LQ inverse-optimal-control check."""
 
 import dataclasses
 import importlib.util
+import sys
 from pathlib import Path
 
 import jax
@@ -285,9 +286,14 @@ def test_model_log_density_matches_scipy_and_samples_feed_the_learner():
 
 
 def load_lq_ioc():
+    """experiments/ is not a package: load the script as module ``lq_ioc`` (registered in
+    sys.modules so that its dataclasses resolve their annotations)."""
+    if "lq_ioc" in sys.modules:
+        return sys.modules["lq_ioc"]
     path = Path(__file__).resolve().parents[1] / "experiments" / "lq_ioc.py"
     spec = importlib.util.spec_from_file_location("lq_ioc", path)
     module = importlib.util.module_from_spec(spec)
+    sys.modules["lq_ioc"] = module
     spec.loader.exec_module(module)
     return module
 
