@@ -82,7 +82,7 @@ class LQIOCConfig:
             demo_batch=10,
             sample_batch=20,
             learning_rate=3e-3,
-            lcr_weight=1e-3,
+            lcr_weight=1.0,
         )
     )
 
