@@ -21,6 +21,16 @@ own fitted controller in the mixture); ``"model"`` — the seed's variant, ``mod
 trajectories of the current controller in the fitted linear-Gaussian model with their full
 ``log p(τ)``.
 
+Proposal densities without LAPACK: jaxlib 0.10.2's CPU LAPACK kernels (triangular solve,
+Cholesky, LU) split a large batch over the intra-op thread pool and block on it; when the thunk
+executor runs as many of them concurrently as the pool has threads (2 here), the process
+deadlocks (measured: an 8-seed vmapped arm run hung in ``lapack_strsm_ffi``). The densities of the
+cost update are therefore computed here from the stored precision and Cholesky factor
+(:func:`gaussian_log_density`, :func:`small_cholesky` — unrolled, plain jnp), rather than with
+:func:`diffgcl.costs.gcl.fusion_weighted_samples` / :mod:`diffgcl.costs.model_samples`, which
+compute the same quantities with ``solve_triangular``; the demos' controller is fitted once on the
+host (:func:`demo_batch`), outside the vmapped program.
+
 Everything is pure: :func:`make_train` returns ``train(key, demos, hparams) -> (state, metrics)``;
 ``jax.jit(jax.vmap(train))`` over keys and :class:`RGCLHyperparams` (KL step, initial controller
 variance, cost learning rate — all traced) is a sweep. The same iteration is exposed as
@@ -55,16 +65,15 @@ from diffgcl.algorithms.gps import (
     GPSState,
     make_gps_phases,
 )
-from diffgcl.costs.buffer import SampleBuffer, buffer_add, init_buffer
+from diffgcl.costs.buffer import SampleBuffer, buffer_add, samples_per_controller
 from diffgcl.costs.demo_controller import fit_demo_controller
 from diffgcl.costs.gcl import (
     GCLConfig,
     GCLMetrics,
     WeightedSamples,
-    fusion_weighted_samples,
+    _mixture_log_weights,
     make_cost_learner,
 )
-from diffgcl.costs.model_samples import model_weighted_samples
 from diffgcl.costs.network import (
     CostNetwork,
     CostNetworkConfig,
@@ -145,10 +154,13 @@ class RGCLHyperparams:
 
 @struct.dataclass
 class DemoBatch:
-    """Demonstrations grouped by condition: X: [C, N, T+1, dX], U: [C, N, T, dU]."""
+    """Demonstrations grouped by condition: X: [C, N, T+1, dX], U: [C, N, T, dU]; controller:
+    the demos' own fitted linear-Gaussian controller per condition (fields [C, T, ...]), a
+    component of the fusion mixture (:func:`diffgcl.costs.demo_controller.fit_demo_controller`)."""
 
     X: Array
     U: Array
+    controller: LinearGaussianController
 
 
 @struct.dataclass
@@ -166,15 +178,14 @@ class RGCLState:
     """State of one rGCL run with C conditions.
 
     gps: :class:`GPSState` (fields [C, ...]); cost: :class:`CostState`; buffer: fusion
-    :class:`SampleBuffer` with a leading [C] axis; demo_controller: the demos' fitted controller,
-    fields [C, T, ...]; iteration: int32, rGCL iterations accepted; step: int32, iterations
-    attempted (keys are ``fold_in(key_loop, step)``; differs from ``iteration`` after a rollback).
+    :class:`SampleBuffer` with a leading [C] axis; iteration: int32, rGCL iterations
+    accepted; step: int32, iterations attempted (keys are ``fold_in(key_loop, step)``; differs
+    from ``iteration`` after a rollback).
     """
 
     gps: GPSState
     cost: CostState
     buffer: SampleBuffer
-    demo_controller: LinearGaussianController
     iteration: Array
     step: Array
 
@@ -213,6 +224,158 @@ class RGCL(NamedTuple):
     run: Callable[..., tuple[RGCLState, RGCLMetrics]]
     default_hparams: Callable[[], RGCLHyperparams]
     network: CostNetwork
+
+
+# ---- densities without LAPACK (see the module docstring) ----------------------------------------
+
+
+def small_cholesky(A: Array) -> Array:
+    """Lower Cholesky factor of a small SPD matrix ``A: [n, n]`` by the unrolled column recursion
+    (plain jnp ops; ``n`` is static and small)."""
+    n = A.shape[-1]
+    L = jnp.zeros_like(A)
+    for j in range(n):
+        d = jnp.sqrt(jnp.maximum(A[j, j] - L[j, :j] @ L[j, :j], jnp.finfo(A.dtype).tiny))
+        L = L.at[j, j].set(d)
+        if j + 1 < n:
+            col = (A[j + 1 :, j] - L[j + 1 :, :j] @ L[j, :j]) / d
+            L = L.at[j + 1 :, j].set(col)
+    return L
+
+
+def _forward_substitution(L: Array, b: Array) -> Array:
+    """``L⁻¹ b`` for lower-triangular ``L: [n, n]``, ``b: [n]`` (unrolled)."""
+    x = jnp.zeros_like(b)
+    for i in range(b.shape[-1]):
+        x = x.at[i].set((b[i] - L[i, :i] @ x[:i]) / L[i, i])
+    return x
+
+
+def gaussian_log_density(x: Array, mean: Array, chol: Array) -> Array:
+    """``log N(x; mean, L Lᵀ)`` for one ``x: [n]`` with ``chol = L: [n, n]``."""
+    white = _forward_substitution(chol, x - mean)
+    log_det = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
+    return -0.5 * (white @ white + log_det + x.shape[-1] * jnp.log(2.0 * jnp.pi))
+
+
+def action_log_density(controller: LinearGaussianController, X: Array, U: Array) -> Array:
+    """``Σ_t log N(u_t; K_t x_t + k_t, Σ_t)`` of one trajectory ``X: [T+1, dX]``, ``U: [T, dU]``,
+    from the controller's stored precision and Cholesky factor."""
+    r = U - (jnp.einsum("tij,tj->ti", controller.K, X[:-1]) + controller.k)
+    quad = jnp.einsum("ti,tij,tj->", r, controller.inv_cov, r)
+    log_det = 2.0 * jnp.sum(jnp.log(jnp.diagonal(controller.chol_cov, axis1=-2, axis2=-1)))
+    return -0.5 * (quad + log_det + U.size * jnp.log(2.0 * jnp.pi))
+
+
+def fusion_sets(
+    buffer: SampleBuffer, demos_X: Array, demos_U: Array, demo_ctrl, config: GCLConfig
+) -> tuple[WeightedSamples, WeightedSamples]:
+    """GCL's fusion proposal densities (one condition): the stored samples and the demos
+    (``demos_X: [N, T+1, dX]``) with ``log q`` under the mixture of every stored controller and
+    the demos' controller (weights as :func:`diffgcl.costs.gcl.fusion_weighted_samples`; with
+    ``config.fusion`` off, each trajectory's own proposal). Returns ``(samples [S], demos [N])``."""
+    N = demos_X.shape[0]
+    counts = samples_per_controller(buffer)
+    n_samples = jnp.minimum(config.sample_batch, buffer.valid.sum()).astype(demos_X.dtype)
+    n_demos = float(min(config.demo_batch, N)) if config.demos_in_partition else 0.0
+    log_pi, log_pi_demo = _mixture_log_weights(counts, jnp.asarray(n_demos), n_samples, config)
+    per_ctrl = jax.vmap(action_log_density, in_axes=(0, None, None))
+
+    def log_proposal(X: Array, U: Array, own: Array | None) -> Array:
+        log_q_ctrl = jnp.where(
+            buffer.controller_valid, per_ctrl(buffer.controllers, X, U), -jnp.inf
+        )
+        log_q_demo = action_log_density(demo_ctrl, X, U)
+        if not config.fusion:
+            return log_q_demo if own is None else log_q_ctrl[own]
+        return jax.nn.logsumexp(
+            jnp.concatenate([log_pi + log_q_ctrl, (log_pi_demo + log_q_demo)[None]])
+        )
+
+    log_q_s = jax.vmap(log_proposal)(buffer.X, buffer.U, buffer.source)
+    log_q_d = jax.vmap(lambda X, U: log_proposal(X, U, None))(demos_X, demos_U)
+    return (
+        WeightedSamples(X=buffer.X, U=buffer.U, log_q=log_q_s, valid=buffer.valid),
+        WeightedSamples(X=demos_X, U=demos_U, log_q=log_q_d, valid=jnp.ones(N, bool)),
+    )
+
+
+def model_sets(
+    key: PRNGKey,
+    samples: GPSSamples,
+    controller: LinearGaussianController,
+    demos_X: Array,
+    demos_U: Array,
+    n_samples: int,
+    jitter: float = 1e-6,
+) -> tuple[WeightedSamples, WeightedSamples]:
+    """The seed's sample set (one condition; see :mod:`diffgcl.costs.model_samples`):
+    ``n_samples`` rollouts of ``controller`` in the fitted linear-Gaussian model (``samples``'
+    dynamics and x0 Gaussian) and the demos, each with the full model ``log p(τ)`` (initial
+    state, actions, dynamics); current controller only, no fusion."""
+    dyn, x0 = samples.dynamics, samples.x0
+    dX = x0.mean.shape[-1]
+    eye = jnp.eye(dX, dtype=x0.mean.dtype)
+    chol = lambda c: small_cholesky(0.5 * (c + c.T) + jitter * eye)
+    chol_x0 = chol(x0.cov)
+    chol_dyn = jax.vmap(chol)(dyn.cov)
+
+    def log_p(X: Array, U: Array) -> Array:
+        mean_next = jnp.einsum("tij,tj->ti", dyn.A, X[:-1]) + jnp.einsum("tij,tj->ti", dyn.B, U)
+        log_dyn = jax.vmap(gaussian_log_density)(X[1:], mean_next + dyn.c, chol_dyn).sum()
+        log_x0 = gaussian_log_density(X[0], x0.mean, chol_x0)
+        return log_x0 + action_log_density(controller, X, U) + log_dyn
+
+    def draw(key: PRNGKey) -> tuple[Array, Array]:
+        key_x0, key_u, key_w = jax.random.split(key, 3)
+        T, dU = controller.k.shape
+        dtype = x0.mean.dtype
+        x_init = x0.mean + chol_x0 @ jax.random.normal(key_x0, (dX,), dtype)
+        v = jax.random.normal(key_u, (T, dU), dtype)
+        w = jax.random.normal(key_w, (T, dX), dtype)
+
+        def step(x, inputs):
+            A, B, c, L_dyn, K, k, L_u, v_t, w_t = inputs
+            u = K @ x + k + L_u @ v_t
+            return A @ x + B @ u + c + L_dyn @ w_t, (x, u)
+
+        xs = (dyn.A, dyn.B, dyn.c, chol_dyn, controller.K, controller.k, controller.chol_cov, v, w)
+        x_T, (X, U) = lax.scan(step, x_init, xs)
+        return jnp.concatenate([X, x_T[None]]), U
+
+    X, U = jax.vmap(draw)(jax.random.split(key, n_samples))
+    N = demos_X.shape[0]
+    return (
+        WeightedSamples(X=X, U=U, log_q=jax.vmap(log_p)(X, U), valid=jnp.ones(n_samples, bool)),
+        WeightedSamples(
+            X=demos_X, U=demos_U, log_q=jax.vmap(log_p)(demos_X, demos_U), valid=jnp.ones(N, bool)
+        ),
+    )
+
+
+def empty_buffer(
+    capacity: int, max_controllers: int, T: int, dX: int, dU: int, dtype
+) -> SampleBuffer:
+    """An empty :class:`SampleBuffer` (placeholder controllers with identity covariance, built
+    without a Cholesky call)."""
+    eye = jnp.broadcast_to(jnp.eye(dU, dtype=dtype), (max_controllers, T, dU, dU))
+    placeholder = LinearGaussianController(
+        K=jnp.zeros((max_controllers, T, dU, dX), dtype),
+        k=jnp.zeros((max_controllers, T, dU), dtype),
+        cov=eye,
+        chol_cov=eye,
+        inv_cov=eye,
+    )
+    return SampleBuffer(
+        X=jnp.zeros((capacity, T + 1, dX), dtype),
+        U=jnp.zeros((capacity, T, dU), dtype),
+        source=jnp.zeros(capacity, jnp.int32),
+        valid=jnp.zeros(capacity, bool),
+        controllers=placeholder,
+        controller_valid=jnp.zeros(max_controllers, bool),
+        next_sample=jnp.zeros((), jnp.int32),
+        next_controller=jnp.zeros((), jnp.int32),
+    )
 
 
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
@@ -283,7 +446,6 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
 
     def weighted_sets(
         buffer: SampleBuffer,
-        demo_ctrl: LinearGaussianController,
         demos: DemoBatch,
         key: PRNGKey,
         samples: GPSSamples | None = None,
@@ -291,17 +453,16 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     ) -> tuple[WeightedSamples, WeightedSamples]:
         """(samples [C, S], demos [C, N]) with their log proposal densities."""
         if config.sample_source == "model" and samples is not None:
-            return jax.vmap(model_weighted_samples, in_axes=(0, 0, 0, 0, 0, 0, None))(
+            return jax.vmap(model_sets, in_axes=(0, 0, 0, 0, 0, None))(
                 jax.random.split(key, C),
-                samples.dynamics,
+                samples,
                 sample_ctrl,
-                samples.x0,
                 demos.X,
                 demos.U,
                 config.model_samples,
             )
-        return jax.vmap(fusion_weighted_samples, in_axes=(0, 0, 0, 0, None))(
-            buffer, demo_ctrl, demos.X, demos.U, gcl_cfg
+        return jax.vmap(fusion_sets, in_axes=(0, 0, 0, 0, None))(
+            buffer, demos.X, demos.U, demos.controller, gcl_cfg
         )
 
     def optimise(cost: CostState, key: PRNGKey, demos_w, samples_w, n_steps: int):
@@ -348,12 +509,9 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         cost = CostState(
             params=params, opt_state=optimiser.init(params.net), step=jnp.zeros((), jnp.int32)
         )
-        buffer = jax.vmap(
-            lambda _: init_buffer(
-                N * config.buffer_controllers, config.buffer_controllers, T, dX, dU, dtype
-            )
-        )(jnp.arange(C))
-        demo_ctrl = jax.vmap(fit_demo_controller)(demos.X, demos.U)
+        Kc = config.buffer_controllers
+        empty = empty_buffer(N * Kc, Kc, T, dX, dU, dtype)
+        buffer = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), empty)
         if config.pretrain and gcl_cfg.pretrain_steps > 0:
             pre_buffer = buffer
             if config.pretrain_with_samples:
@@ -363,15 +521,12 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
                 )
                 samples = jax.vmap(sample)(gps.controller, X0, jax.random.split(key_samples, C))
                 pre_buffer = jax.vmap(buffer_add)(buffer, gps.controller, samples.X, samples.U)
-            samples_w, demos_w = weighted_sets(
-                pre_buffer, demo_ctrl, demos, key_samples, None, None
-            )
+            samples_w, demos_w = weighted_sets(pre_buffer, demos, key_samples)
             cost, _ = optimise(cost, key_pretrain, demos_w, samples_w, gcl_cfg.pretrain_steps)
         return RGCLState(
             gps=gps,
             cost=cost,
             buffer=buffer,
-            demo_controller=demo_ctrl,
             iteration=jnp.zeros((), jnp.int32),
             step=jnp.zeros((), jnp.int32),
         )
@@ -387,9 +542,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     def cost_step(state: RGCLState, cost: CostState, key, demos, samples, sample_ctrl, buffer):
         """The cost update (or none on frozen iterations)."""
         key_sets, key_opt = jax.random.split(key)
-        samples_w, demos_w = weighted_sets(
-            buffer, state.demo_controller, demos, key_sets, samples, sample_ctrl
-        )
+        samples_w, demos_w = weighted_sets(buffer, demos, key_sets, samples, sample_ctrl)
         new, metrics = optimise(cost, key_opt, demos_w, samples_w, gcl_cfg.n_steps)
         update = state.iteration < config.iterations - config.freeze_last
         new = jax.tree.map(lambda a, b: jnp.where(update, a, b), new, cost)
@@ -565,8 +718,8 @@ def epic_to_expert(env: Env, network: CostNetwork, params: CostParams, coverage)
 
 def demo_batch(demos, conditions: int, dtype=None) -> DemoBatch:
     """Host-side: a :class:`DemoBatch` [C, N, ...] from a :class:`diffgcl.data.demos.DemoSet`,
-    grouping episodes by their ``condition`` metadata (all in condition 0 when absent); every
-    condition must have the same number of demos."""
+    grouping episodes by their ``condition`` metadata (all in condition 0 when absent), with the
+    demos' fitted controller; every condition must have the same number of demos."""
     cond = np.array(
         [int(e.get("condition", 0)) for e in demos.episodes]
         if demos.episodes
@@ -580,6 +733,7 @@ def demo_batch(demos, conditions: int, dtype=None) -> DemoBatch:
             f"{[len(g) for g in groups]} for {conditions} conditions"
         )
     dtype = dtype or jnp.zeros(()).dtype
-    X = np.stack([demos.X[g] for g in groups])
-    U = np.stack([demos.U[g] for g in groups])
-    return DemoBatch(X=jnp.asarray(X, dtype), U=jnp.asarray(U, dtype))
+    X = jnp.asarray(np.stack([demos.X[g] for g in groups]), dtype)
+    U = jnp.asarray(np.stack([demos.U[g] for g in groups]), dtype)
+    controller = jax.jit(jax.vmap(fit_demo_controller))(X, U)
+    return DemoBatch(X=X, U=U, controller=controller)
