@@ -93,38 +93,48 @@ def c_throughput(env, n: int, T: int, repeats: int) -> float:
     return n * T / best_time(run, repeats)
 
 
-def linearization_comparison(T: int, repeats: int) -> dict:
-    """Autodiff vs centred FD Jacobians along one arm trajectory, float64."""
+def linearization_comparison(T: int, batch: int, repeats: int) -> dict:
+    """Autodiff vs centred FD Jacobians along arm trajectories, float64: one trajectory of T
+    steps, and ``batch`` of them at once (how a sweep over seeds linearises)."""
     with jax.enable_x64(True):
         env = make_env("arm")
         rng = np.random.default_rng(1)
-        U = 0.3 * rng.normal(size=(T, 2))
-        X = [np.asarray(env.initial_states()[0])]
-        step = jax.jit(env.step)
-        for u in U:
-            X.append(np.asarray(step(jnp.asarray(X[-1]), jnp.asarray(u))))
-        X = np.array(X)
+        U = 0.3 * rng.normal(size=(batch, T, 2))
+        X = [np.tile(np.asarray(env.initial_states()[0]), (batch, 1))]
+        step = jax.jit(jax.vmap(env.step))
+        for t in range(T):
+            X.append(np.asarray(step(jnp.asarray(X[-1]), jnp.asarray(U[:, t]))))
+        X = np.stack(X, axis=1)  # [batch, T+1, 4]
         lin = jax.jit(lambda X, U: linearize_trajectory(env.step, X, U))
+        lin_batch = jax.jit(jax.vmap(lambda X, U: linearize_trajectory(env.step, X, U)))
         Xj, Uj = jnp.asarray(X), jnp.asarray(U)
-        A, B = lin(Xj, Uj)
-        t_ad = best_time(lambda: jax.block_until_ready(lin(Xj, Uj)), repeats)
+        A, B = lin(Xj[0], Uj[0])
+        t_ad = best_time(lambda: jax.block_until_ready(lin(Xj[0], Uj[0])), repeats)
+        t_ad_batch = best_time(lambda: jax.block_until_ready(lin_batch(Xj, Uj)), repeats)
 
         model = mujoco.MjModel.from_xml_path(env.mjcf_path)
         data = mujoco.MjData(model)
-        A_fd = np.zeros((T, 4, 4))
-        B_fd = np.zeros((T, 4, 2))
+        A_fd = np.zeros((batch, T, 4, 4))
+        B_fd = np.zeros((batch, T, 4, 2))
 
-        def fd():
-            for t in range(T):
-                data.qpos[:], data.qvel[:], data.ctrl[:] = X[t, :2], X[t, 2:], U[t]
-                mujoco.mjd_transitionFD(model, data, 1e-6, True, A_fd[t], B_fd[t], None, None)
+        def fd(trajectories):
+            for i in range(trajectories):
+                for t in range(T):
+                    data.qpos[:], data.qvel[:], data.ctrl[:] = X[i, t, :2], X[i, t, 2:], U[i, t]
+                    mujoco.mjd_transitionFD(
+                        model, data, 1e-6, True, A_fd[i, t], B_fd[i, t], None, None
+                    )
 
-        t_fd = best_time(fd, repeats)
-        diff = max(np.abs(np.asarray(A) - A_fd).max(), np.abs(np.asarray(B) - B_fd).max())
+        t_fd = best_time(lambda: fd(1), repeats)
+        t_fd_batch = best_time(lambda: fd(batch), repeats)
+        diff = max(np.abs(np.asarray(A) - A_fd[0]).max(), np.abs(np.asarray(B) - B_fd[0]).max())
     return {
         "linearize_autodiff_ms": 1e3 * t_ad,
         "linearize_fd_ms": 1e3 * t_fd,
         "linearize_max_abs_diff": float(diff),
+        "linearize_batch": batch,
+        "linearize_batch_autodiff_ms": 1e3 * t_ad_batch,
+        "linearize_batch_fd_ms": 1e3 * t_fd_batch,
     }
 
 
@@ -170,12 +180,18 @@ def main(argv=None) -> dict:
         "cores": CORES,
         "fast": args.fast,
     }
-    results.update(linearization_comparison(T, repeats))
+    results.update(linearization_comparison(T, 8 if args.fast else 32, repeats))
     print(
         f"linearise T={T}: autodiff {results['linearize_autodiff_ms']:.2f} ms | centred FD "
         f"{results['linearize_fd_ms']:.2f} ms | speed-up "
         f"{results['linearize_fd_ms'] / results['linearize_autodiff_ms']:.1f}x | max |diff| "
         f"{results['linearize_max_abs_diff']:.2e}"
+    )
+    print(
+        f"linearise {results['linearize_batch']} x T={T}: autodiff "
+        f"{results['linearize_batch_autodiff_ms']:.2f} ms | centred FD "
+        f"{results['linearize_batch_fd_ms']:.2f} ms | speed-up "
+        f"{results['linearize_batch_fd_ms'] / results['linearize_batch_autodiff_ms']:.1f}x"
     )
     print(f"MJX / C rollout at N={ref['n']}: {results['mjx_over_c']:.2f}x")
     if args.json:
