@@ -151,7 +151,7 @@ def test_linear_skip_features_and_weight_decay_mask():
     learner = make_cost_learner(net, GCLConfig(weight_decay=0.5, learning_rate=0.1))
     state = learner.init(jax.random.key(0), params)
     zero = jax.tree.map(jnp.zeros_like, params.net)
-    updates, _ = learner.optimiser.update(zero, state.opt_state, params.net)
+    updates, _ = jax.jit(learner.optimiser.update)(zero, state.opt_state, params.net)
     new_net = optax.apply_updates(params.net, updates)
     features = new_net["features"]
     np.testing.assert_allclose(

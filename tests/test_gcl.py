@@ -103,7 +103,7 @@ def test_fusion_weights_give_unbiased_self_normalised_estimates():
     proposals = [gaussian_controller(-0.5, 0.5), gaussian_controller(0.4, 1.0)]
     proposals.append(gaussian_controller(1.0, 0.3))
     target = gaussian_controller(0.3, 0.4)
-    n = 4000
+    n = 2000
     config = GCLConfig(demos_in_partition=False)
     buffer = init_buffer(3 * n, 3, T, dX, dU, jnp.float64)
     for i, ctrl in enumerate(proposals):
@@ -126,7 +126,7 @@ def test_fusion_weights_give_unbiased_self_normalised_estimates():
     stderr = direct.std() / jnp.sqrt(direct.size)
     ess = 1.0 / jnp.sum(w**2)
     tolerance = 4 * direct.std() * jnp.sqrt(1 / ess + 1 / direct.size)
-    assert ess > 500
+    assert ess > 300
     assert abs(estimate - direct.mean()) < tolerance, (estimate, direct.mean(), stderr, ess)
 
     # The mixture is the count-weighted average of the three densities.
@@ -209,7 +209,7 @@ def buffer_and_demos(config, n_iter=2):
 
 
 def test_update_decreases_loss_jits_once_and_vmaps_over_seeds():
-    config = GCLConfig(n_steps=30, demo_batch=3, sample_batch=5, learning_rate=1e-2, lcr_weight=0.1)
+    config = GCLConfig(n_steps=10, demo_batch=3, sample_batch=5, learning_rate=1e-2, lcr_weight=0.1)
     learner = make_cost_learner(NET, config)
     samples, demos = buffer_and_demos(config)
     update = jax.jit(learner.update)
