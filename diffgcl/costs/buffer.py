@@ -9,9 +9,10 @@ evicted controller drew are invalidated too, so that every valid sample's source
 (the mixture proposal is then exactly the set of controllers in the buffer). With
 ``S = N · Kc`` the two rings turn together.
 
-Densities are recomputed from the stored controller parameters (``Σ_t log N(u_t; K_t x_t + k_t,
-Σ_t)``, the dynamics terms being common to all proposals), which costs ``S · Kc · T`` Gaussian
-evaluations per cost update and avoids a stale ``[S, Kc]`` table.
+Densities ``Σ_t log N(u_t; K_t x_t + k_t, Σ_t)`` (the dynamics terms being common to all
+proposals) are recomputed from the stored controllers' precisions and Cholesky factors (no LAPACK
+call), which costs ``S · Kc · T`` Gaussian evaluations per cost update and avoids a stale
+``[S, Kc]`` table.
 
 Everything here is for one condition; vmap over conditions at the call site.
 """
@@ -103,16 +104,16 @@ def buffer_add(
 
 
 def action_log_density(controller: LinearGaussianController, X: Array, U: Array) -> Array:
-    """``Σ_t log N(u_t; K_t x_t + k_t, Σ_t)`` of one trajectory ``X: [T+1, dX]``, ``U: [T, dU]``."""
-    mean = jnp.einsum("tij,tj->ti", controller.K, X[:-1]) + controller.k
-    # Whitened residual L⁻¹(u − μ) with cov = L Lᵀ.
-    white = jax.vmap(lambda L, r: jax.scipy.linalg.solve_triangular(L, r, lower=True))(
-        controller.chol_cov, U - mean
-    )
+    """``Σ_t log N(u_t; K_t x_t + k_t, Σ_t)`` of one trajectory ``X: [T+1, dX]``, ``U: [T, dU]``.
+
+    From the controller's stored precision and Cholesky factor — matrix products only, no LAPACK
+    call: jaxlib's batched CPU triangular solves can deadlock the 2-thread pool when several run
+    at once inside a wide vmapped program (seen in the rGCL sweeps).
+    """
+    r = U - (jnp.einsum("tij,tj->ti", controller.K, X[:-1]) + controller.k)
+    quad = jnp.einsum("ti,tij,tj->", r, controller.inv_cov, r)
     log_det = 2.0 * jnp.log(jnp.diagonal(controller.chol_cov, axis1=-2, axis2=-1)).sum()
-    dU = U.shape[-1]
-    T = U.shape[0]
-    return -0.5 * (white**2).sum() - 0.5 * log_det - 0.5 * T * dU * jnp.log(2.0 * jnp.pi)
+    return -0.5 * (quad + log_det + U.size * jnp.log(2.0 * jnp.pi))
 
 
 def controller_log_densities(buffer: SampleBuffer, X: Array, U: Array) -> Array:
