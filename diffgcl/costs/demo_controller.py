@@ -6,6 +6,8 @@ Per time step t, a ridge regression of ``u_t`` on ``[x_t, 1]`` across the ``N`` 
 (the state is centred first so the ridge penalty does not shrink the offset), and the residual
 covariance plus a floor ``cov_floor · I``. With fewer demos than state dimensions the ridge term
 keeps the fit defined; the covariance floor keeps the density finite when demos agree exactly.
+The fit uses LAPACK (``solve``, and ``make_controller``'s Cholesky): the demos do not change
+during training, so fit once, outside wide vmapped programs (see :mod:`diffgcl.costs.buffer`).
 """
 
 from __future__ import annotations
