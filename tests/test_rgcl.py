@@ -112,17 +112,28 @@ def test_tiny_v2_learns_to_reach(slider):
     assert reopt_cost[-1] < 0.3 * reopt_cost[0], reopt_cost
 
 
+@pytest.fixture(scope="module")
+def programs(slider):
+    """The tiny v1 and v2 runs (3 iterations), compiled once: (rgcl, jit(train),
+    jit(vmap(train)) over keys and hyperparameters) per schedule."""
+    env, _ = slider
+    out = {}
+    for schedule in ("v1", "v2"):
+        rgcl = make_train(tiny_config(schedule, iterations=3), env)
+        batch = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None, 0)))
+        out[schedule] = (rgcl, jax.jit(rgcl.train), batch)
+    return out
+
+
 @pytest.mark.parametrize("schedule", ["v1", "v2"])
-def test_batched_equals_unbatched(slider, schedule):
+def test_batched_equals_unbatched(slider, programs, schedule):
     env, demos = slider
-    config = tiny_config(schedule, iterations=3)
-    rgcl = make_train(config, env)
+    rgcl, single, batch = programs[schedule]
     keys = jax.random.split(jax.random.PRNGKey(11), 2)
     hp = rgcl.default_hparams()
     # A sweep over a traced hyperparameter: the two runs use different cost learning rates.
     hps = jax.tree.map(lambda a: jnp.stack([a, a]), hp).replace(cost_lr=jnp.array([1e-2, 3e-3]))
-    batch_state, batch_m = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None, 0)))(keys, demos, hps)
-    single = jax.jit(rgcl.train)
+    batch_state, batch_m = batch(keys, demos, hps)
     G = 2 if schedule == "v1" else 1
     assert batch_m.gps.cost.shape == (2, 3, G, 1)
     for i in range(2):
@@ -136,40 +147,41 @@ def test_batched_equals_unbatched(slider, schedule):
     assert not np.allclose(net[0], net[1])
 
 
-def test_same_seed_same_result(slider):
+def test_same_seed_same_result(slider, programs):
     env, demos = slider
-    rgcl = make_train(tiny_config("v2", iterations=2), env)
-    train = jax.jit(rgcl.train)
-    a = train(jax.random.PRNGKey(4), demos)
-    b = train(jax.random.PRNGKey(4), demos)
-    c = train(jax.random.PRNGKey(5), demos)
+    rgcl, train, _ = programs["v2"]
+    hp = rgcl.default_hparams()
+    a = train(jax.random.PRNGKey(4), demos, hp)
+    b = train(jax.random.PRNGKey(4), demos, hp)
+    c = train(jax.random.PRNGKey(5), demos, hp)
     for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
     assert not np.array_equal(np.asarray(a[1].gps.cost), np.asarray(c[1].gps.cost))
 
 
-def test_checkpoint_kill_resume_matches_uninterrupted(slider, tmp_path):
+def test_checkpoint_kill_resume_matches_uninterrupted(slider, programs, tmp_path):
     from diffgcl.algorithms.runner import SimulatedCrash, train_seeds
 
     env, demos = slider
-    config = tiny_config("v2", iterations=6)
+    config = tiny_config("v2", iterations=3)
     seeds = [0, 1]
-    full = train_seeds(config, env, demos, seeds, chunk=2, progress=False)
+    full = train_seeds(config, env, demos, seeds, chunk=1, progress=False)
     out = tmp_path / "run"
     with pytest.raises(SimulatedCrash):
-        train_seeds(config, env, demos, seeds, out=out, chunk=2, checkpoint_every=2, crash_after=4)
-    resumed = train_seeds(config, env, demos, seeds, out=out, chunk=2, resume=True, progress=False)
-    assert resumed.resumed_from == 4
-    assert resumed.metrics.gps.cost.shape == (2, 6, 1, 1)
+        train_seeds(config, env, demos, seeds, out=out, chunk=1, checkpoint_every=1, crash_after=2)
+    resumed = train_seeds(config, env, demos, seeds, out=out, chunk=1, resume=True, progress=False)
+    assert resumed.resumed_from == 2
+    assert resumed.metrics.gps.cost.shape == (2, 3, 1, 1)
     for a, b in zip(jax.tree.leaves(full.state), jax.tree.leaves(resumed.state), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
     for a, b in zip(jax.tree.leaves(full.metrics), jax.tree.leaves(resumed.metrics), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
     # The chunked host loop equals one jit(vmap(train)) call.
-    rgcl = make_train(config, env)
+    rgcl, _, batch = programs["v2"]
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
-    state, _ = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None)))(keys, demos)
-    np.testing.assert_allclose(full.state.gps.controller.K, state.gps.controller.K, rtol=1e-12)
+    hps = jax.tree.map(lambda a: jnp.stack([a, a]), rgcl.default_hparams())
+    state, _ = batch(keys, demos, hps)
+    np.testing.assert_allclose(full.state.gps.controller.K, state.gps.controller.K, rtol=1e-9)
 
 
 def test_nan_guard_rolls_back_and_reports(slider, capsys):

@@ -685,7 +685,7 @@ def make_reoptimise(config: RGCLConfig, env: Env, network: CostNetwork):
     return reopt
 
 
-def arm_coverage(env: Env, key: PRNGKey, n: int = 2048):
+def arm_coverage(env: Env, key: PRNGKey, n: int = 1024):
     """Coverage transitions for EPIC on the arm: joint angles uniform over the box spanned by the
     start and the target with a 0.5 rad margin, velocities ~ N(0, 1), actions ~ N(0, 2²); the
     successor states come from the simulator. Returns (X, U, X_next) with [n, ·] each."""
@@ -702,18 +702,21 @@ def arm_coverage(env: Env, key: PRNGKey, n: int = 2048):
     return X, U, X_next
 
 
-def epic_to_expert(env: Env, network: CostNetwork, params: CostParams, coverage) -> Array:
+def epic_to_expert(
+    env: Env, network: CostNetwork, params: CostParams, coverage, n_canonical: int = 256
+) -> Array:
     """EPIC distance (γ = 1) between the learned per-step cost and ``env.expert_cost`` on the
-    coverage transitions ``(X, U, X_next)``; the canonicalisation uses the same set, shuffled
-    (:func:`diffgcl.eval.epic.epic_distance`)."""
+    coverage transitions ``(X, U, X_next)`` (:func:`diffgcl.eval.epic.epic_distance`); the
+    canonicalising distributions are the first ``n_canonical`` coverage states, successor states
+    and (shifted, so independent of the states) actions."""
     from diffgcl.eval.epic import epic_distance
 
     X, U, X_next = coverage
-    n = X.shape[0]
-    perm = jnp.roll(jnp.arange(n), n // 3)
+    m = min(n_canonical, X.shape[0])
+    A = jnp.roll(U, X.shape[0] // 3, axis=0)[:m]
     learned = lambda x, u, x_next: network.cost(params, x, u, 0)
     expert = lambda x, u, x_next: env.expert_cost(x, u, 0)
-    return epic_distance(learned, expert, X, U, X_next, X, U[perm], X_next)
+    return epic_distance(learned, expert, X, U, X_next, X[:m], A, X_next[:m])
 
 
 def demo_batch(demos, conditions: int, dtype=None) -> DemoBatch:
