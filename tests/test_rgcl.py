@@ -333,3 +333,20 @@ def test_lapack_free_densities_match_the_library():
     for wa, wb in zip(a, b, strict=True):
         valid = np.asarray(wb.valid)
         np.testing.assert_allclose(np.asarray(wa.log_q)[valid], np.asarray(wb.log_q)[valid])
+
+
+def test_seed_variant_model_samples_run(slider):
+    """The paper presets' path: cost samples from the fitted linear-Gaussian model, one Adam step
+    per update, pre-training on the demos alone."""
+    env, demos = slider
+    config = tiny_config(
+        "v1",
+        iterations=2,
+        sample_source="model",
+        model_samples=6,
+        pretrain_with_samples=False,
+        gcl=GCLConfig(n_steps=1, pretrain_steps=1, learning_rate=1e-4, fusion=False),
+    )
+    state, m = jax.jit(make_train(config, env).train)(jax.random.PRNGKey(0), demos)
+    assert m.gcl.loss.shape == (2,) and np.all(np.isfinite(m.gcl.loss))
+    assert int(state.cost.step) == 1 + 1 and not bool(m.rolled_back.any())  # last is frozen
