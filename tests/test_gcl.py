@@ -298,9 +298,8 @@ def load_lq_ioc():
     return module
 
 
-@pytest.mark.slow
 def test_lq_ioc_fast_meets_thresholds():
-    """~40 s on 2 cores (one jitted training run plus evaluation)."""
+    """The issue's fast IOC check; ~40 s on 2 cores (one jitted training run plus evaluation)."""
     lq_ioc = load_lq_ioc()
     out = lq_ioc.run(lq_ioc.fast_config(), seeds=[0])
     assert out["spearman"] >= 0.9, out
