@@ -1,6 +1,8 @@
 """The ``diffgcl`` command line.
 
-    diffgcl demo            the built-in default job (what ``make demo`` runs)
+    diffgcl demo            the built-in default job (what ``make demo`` runs): rGCL v1 and v2
+                            with the ``default`` preset on the arm, a handful of seeds
+    diffgcl linearize       arm rollout + autodiff-vs-finite-difference linearisation report
     diffgcl envs            registered environments and their sizes
 
 Subcommands of other parts of the package register themselves in :data:`SUBCOMMAND_MODULES`
@@ -14,7 +16,11 @@ import importlib
 import sys
 import time
 
-SUBCOMMAND_MODULES: tuple[str, ...] = ("diffgcl.algorithms.gps_cli", "diffgcl.data.bags_cli")
+SUBCOMMAND_MODULES: tuple[str, ...] = (
+    "diffgcl.algorithms.gps_cli",
+    "diffgcl.algorithms.rgcl_cli",
+    "diffgcl.data.bags_cli",
+)
 
 
 def cmd_envs(args: argparse.Namespace) -> int:
@@ -30,6 +36,12 @@ def cmd_envs(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
+    from diffgcl.algorithms.rgcl_cli import run_demo
+
+    return run_demo(args)
+
+
+def cmd_linearize(args: argparse.Namespace) -> int:
     """Arm rollout and linearisation report: batched MJX samples, autodiff vs C finite
     differences along their mean."""
     import jax
@@ -88,10 +100,15 @@ def cmd_demo(args: argparse.Namespace) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="diffgcl", description=__doc__.split("\n")[0])
     sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="run the built-in default job")
-    demo.add_argument("--samples", type=int, default=5)
-    demo.add_argument("--seed", type=int, default=0)
+    demo = sub.add_parser("demo", help="run the built-in default job (rGCL on the arm)")
+    demo.add_argument("--seeds", type=int, default=4, help="number of seeds")
+    demo.add_argument("--seed", type=int, default=0, help="first seed")
+    demo.add_argument("--out", default="runs/demo", help="run folders go here")
     demo.set_defaults(func=cmd_demo)
+    lin = sub.add_parser("linearize", help="arm rollout + linearisation report")
+    lin.add_argument("--samples", type=int, default=5)
+    lin.add_argument("--seed", type=int, default=0)
+    lin.set_defaults(func=cmd_linearize)
     envs = sub.add_parser("envs", help="list registered environments")
     envs.set_defaults(func=cmd_envs)
     for module in SUBCOMMAND_MODULES:
