@@ -21,15 +21,13 @@ own fitted controller in the mixture); ``"model"`` — the seed's variant, ``mod
 trajectories of the current controller in the fitted linear-Gaussian model with their full
 ``log p(τ)``.
 
-Proposal densities without LAPACK: jaxlib 0.10.2's CPU LAPACK kernels (triangular solve,
+No LAPACK inside the vmapped program: jaxlib 0.10.2's CPU LAPACK kernels (triangular solve,
 Cholesky, LU) split a large batch over the intra-op thread pool and block on it; when the thunk
 executor runs as many of them concurrently as the pool has threads (2 here), the process
-deadlocks (measured: an 8-seed vmapped arm run hung in ``lapack_strsm_ffi``). The densities of the
-cost update are therefore computed here from the stored precision and Cholesky factor
-(:func:`gaussian_log_density`, :func:`small_cholesky` — unrolled, plain jnp), rather than with
-:func:`diffgcl.costs.gcl.fusion_weighted_samples` / :mod:`diffgcl.costs.model_samples`, which
-compute the same quantities with ``solve_triangular``; the demos' controller is fitted once on the
-host (:func:`demo_batch`), outside the vmapped program.
+deadlocks (measured: an 8-seed vmapped arm run hung in ``lapack_strsm_ffi``). The proposal
+densities of :mod:`diffgcl.costs.gcl` / :mod:`diffgcl.costs.model_samples` avoid LAPACK; the
+demos' controller is fitted once on the host (:func:`demo_batch`) and the empty sample buffer is
+built without a Cholesky call (:func:`empty_buffer`).
 
 Everything is pure: :func:`make_train` returns ``train(key, demos, hparams) -> (state, metrics)``;
 ``jax.jit(jax.vmap(train))`` over keys and :class:`RGCLHyperparams` (KL step, initial controller
@@ -65,15 +63,16 @@ from diffgcl.algorithms.gps import (
     GPSState,
     make_gps_phases,
 )
-from diffgcl.costs.buffer import SampleBuffer, buffer_add, samples_per_controller
+from diffgcl.costs.buffer import SampleBuffer, buffer_add
 from diffgcl.costs.demo_controller import fit_demo_controller
 from diffgcl.costs.gcl import (
     GCLConfig,
     GCLMetrics,
     WeightedSamples,
-    _mixture_log_weights,
+    fusion_weighted_samples,
     make_cost_learner,
 )
+from diffgcl.costs.model_samples import model_weighted_samples
 from diffgcl.costs.network import (
     CostNetwork,
     CostNetworkConfig,
@@ -226,133 +225,6 @@ class RGCL(NamedTuple):
     network: CostNetwork
 
 
-# ---- densities without LAPACK (see the module docstring) ----------------------------------------
-
-
-def small_cholesky(A: Array) -> Array:
-    """Lower Cholesky factor of a small SPD matrix ``A: [n, n]`` by the unrolled column recursion
-    (plain jnp ops; ``n`` is static and small)."""
-    n = A.shape[-1]
-    L = jnp.zeros_like(A)
-    for j in range(n):
-        d = jnp.sqrt(jnp.maximum(A[j, j] - L[j, :j] @ L[j, :j], jnp.finfo(A.dtype).tiny))
-        L = L.at[j, j].set(d)
-        if j + 1 < n:
-            col = (A[j + 1 :, j] - L[j + 1 :, :j] @ L[j, :j]) / d
-            L = L.at[j + 1 :, j].set(col)
-    return L
-
-
-def _forward_substitution(L: Array, b: Array) -> Array:
-    """``L⁻¹ b`` for lower-triangular ``L: [n, n]``, ``b: [n]`` (unrolled)."""
-    x = jnp.zeros_like(b)
-    for i in range(b.shape[-1]):
-        x = x.at[i].set((b[i] - L[i, :i] @ x[:i]) / L[i, i])
-    return x
-
-
-def gaussian_log_density(x: Array, mean: Array, chol: Array) -> Array:
-    """``log N(x; mean, L Lᵀ)`` for one ``x: [n]`` with ``chol = L: [n, n]``."""
-    white = _forward_substitution(chol, x - mean)
-    log_det = 2.0 * jnp.sum(jnp.log(jnp.diagonal(chol)))
-    return -0.5 * (white @ white + log_det + x.shape[-1] * jnp.log(2.0 * jnp.pi))
-
-
-def action_log_density(controller: LinearGaussianController, X: Array, U: Array) -> Array:
-    """``Σ_t log N(u_t; K_t x_t + k_t, Σ_t)`` of one trajectory ``X: [T+1, dX]``, ``U: [T, dU]``,
-    from the controller's stored precision and Cholesky factor."""
-    r = U - (jnp.einsum("tij,tj->ti", controller.K, X[:-1]) + controller.k)
-    quad = jnp.einsum("ti,tij,tj->", r, controller.inv_cov, r)
-    log_det = 2.0 * jnp.sum(jnp.log(jnp.diagonal(controller.chol_cov, axis1=-2, axis2=-1)))
-    return -0.5 * (quad + log_det + U.size * jnp.log(2.0 * jnp.pi))
-
-
-def fusion_sets(
-    buffer: SampleBuffer, demos_X: Array, demos_U: Array, demo_ctrl, config: GCLConfig
-) -> tuple[WeightedSamples, WeightedSamples]:
-    """GCL's fusion proposal densities (one condition): the stored samples and the demos
-    (``demos_X: [N, T+1, dX]``) with ``log q`` under the mixture of every stored controller and
-    the demos' controller (weights as :func:`diffgcl.costs.gcl.fusion_weighted_samples`; with
-    ``config.fusion`` off, each trajectory's own proposal). Returns ``(samples [S], demos [N])``."""
-    N = demos_X.shape[0]
-    counts = samples_per_controller(buffer)
-    n_samples = jnp.minimum(config.sample_batch, buffer.valid.sum()).astype(demos_X.dtype)
-    n_demos = float(min(config.demo_batch, N)) if config.demos_in_partition else 0.0
-    log_pi, log_pi_demo = _mixture_log_weights(counts, jnp.asarray(n_demos), n_samples, config)
-    per_ctrl = jax.vmap(action_log_density, in_axes=(0, None, None))
-
-    def log_proposal(X: Array, U: Array, own: Array | None) -> Array:
-        log_q_ctrl = jnp.where(
-            buffer.controller_valid, per_ctrl(buffer.controllers, X, U), -jnp.inf
-        )
-        log_q_demo = action_log_density(demo_ctrl, X, U)
-        if not config.fusion:
-            return log_q_demo if own is None else log_q_ctrl[own]
-        return jax.nn.logsumexp(
-            jnp.concatenate([log_pi + log_q_ctrl, (log_pi_demo + log_q_demo)[None]])
-        )
-
-    log_q_s = jax.vmap(log_proposal)(buffer.X, buffer.U, buffer.source)
-    log_q_d = jax.vmap(lambda X, U: log_proposal(X, U, None))(demos_X, demos_U)
-    return (
-        WeightedSamples(X=buffer.X, U=buffer.U, log_q=log_q_s, valid=buffer.valid),
-        WeightedSamples(X=demos_X, U=demos_U, log_q=log_q_d, valid=jnp.ones(N, bool)),
-    )
-
-
-def model_sets(
-    key: PRNGKey,
-    samples: GPSSamples,
-    controller: LinearGaussianController,
-    demos_X: Array,
-    demos_U: Array,
-    n_samples: int,
-    jitter: float = 1e-6,
-) -> tuple[WeightedSamples, WeightedSamples]:
-    """The seed's sample set (one condition; see :mod:`diffgcl.costs.model_samples`):
-    ``n_samples`` rollouts of ``controller`` in the fitted linear-Gaussian model (``samples``'
-    dynamics and x0 Gaussian) and the demos, each with the full model ``log p(τ)`` (initial
-    state, actions, dynamics); current controller only, no fusion."""
-    dyn, x0 = samples.dynamics, samples.x0
-    dX = x0.mean.shape[-1]
-    eye = jnp.eye(dX, dtype=x0.mean.dtype)
-    chol = lambda c: small_cholesky(0.5 * (c + c.T) + jitter * eye)
-    chol_x0 = chol(x0.cov)
-    chol_dyn = jax.vmap(chol)(dyn.cov)
-
-    def log_p(X: Array, U: Array) -> Array:
-        mean_next = jnp.einsum("tij,tj->ti", dyn.A, X[:-1]) + jnp.einsum("tij,tj->ti", dyn.B, U)
-        log_dyn = jax.vmap(gaussian_log_density)(X[1:], mean_next + dyn.c, chol_dyn).sum()
-        log_x0 = gaussian_log_density(X[0], x0.mean, chol_x0)
-        return log_x0 + action_log_density(controller, X, U) + log_dyn
-
-    def draw(key: PRNGKey) -> tuple[Array, Array]:
-        key_x0, key_u, key_w = jax.random.split(key, 3)
-        T, dU = controller.k.shape
-        dtype = x0.mean.dtype
-        x_init = x0.mean + chol_x0 @ jax.random.normal(key_x0, (dX,), dtype)
-        v = jax.random.normal(key_u, (T, dU), dtype)
-        w = jax.random.normal(key_w, (T, dX), dtype)
-
-        def step(x, inputs):
-            A, B, c, L_dyn, K, k, L_u, v_t, w_t = inputs
-            u = K @ x + k + L_u @ v_t
-            return A @ x + B @ u + c + L_dyn @ w_t, (x, u)
-
-        xs = (dyn.A, dyn.B, dyn.c, chol_dyn, controller.K, controller.k, controller.chol_cov, v, w)
-        x_T, (X, U) = lax.scan(step, x_init, xs)
-        return jnp.concatenate([X, x_T[None]]), U
-
-    X, U = jax.vmap(draw)(jax.random.split(key, n_samples))
-    N = demos_X.shape[0]
-    return (
-        WeightedSamples(X=X, U=U, log_q=jax.vmap(log_p)(X, U), valid=jnp.ones(n_samples, bool)),
-        WeightedSamples(
-            X=demos_X, U=demos_U, log_q=jax.vmap(log_p)(demos_X, demos_U), valid=jnp.ones(N, bool)
-        ),
-    )
-
-
 def empty_buffer(
     capacity: int, max_controllers: int, T: int, dX: int, dU: int, dtype
 ) -> SampleBuffer:
@@ -453,16 +325,17 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     ) -> tuple[WeightedSamples, WeightedSamples]:
         """(samples [C, S], demos [C, N]) with their log proposal densities."""
         if config.sample_source == "model" and samples is not None:
-            return jax.vmap(model_sets, in_axes=(0, 0, 0, 0, 0, None))(
+            return jax.vmap(model_weighted_samples, in_axes=(0, 0, 0, 0, 0, 0, None))(
                 jax.random.split(key, C),
-                samples,
+                samples.dynamics,
                 sample_ctrl,
+                samples.x0,
                 demos.X,
                 demos.U,
                 config.model_samples,
             )
-        return jax.vmap(fusion_sets, in_axes=(0, 0, 0, 0, None))(
-            buffer, demos.X, demos.U, demos.controller, gcl_cfg
+        return jax.vmap(fusion_weighted_samples, in_axes=(0, 0, 0, 0, None))(
+            buffer, demos.controller, demos.X, demos.U, gcl_cfg
         )
 
     def optimise(cost: CostState, key: PRNGKey, demos_w, samples_w, n_steps: int):
