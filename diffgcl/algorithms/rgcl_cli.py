@@ -340,7 +340,7 @@ def run_demo(args=None) -> int:
     for schedule in ("v1", "v2"):
         config = default(schedule)
         print(f"rGCL {schedule} (default preset), seeds {seeds}")
-        result = train_seeds(config, env, demos, seeds, out=root / schedule, chunk=10)
+        result = train_seeds(config, env, demos, seeds, out=root / schedule, chunk=5)
         summary = write_run_folder(root / schedule, result, env, demos)
         rows.append((f"default {schedule}", summary))
         print(f"  compile {result.compile_seconds:.1f} s, run {result.run_seconds:.1f} s")
