@@ -69,6 +69,7 @@ from diffgcl.costs.gcl import (
     GCLConfig,
     GCLMetrics,
     WeightedSamples,
+    cost_optimiser,
     fusion_weighted_samples,
     make_cost_learner,
 )
@@ -259,21 +260,7 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
 def _make_optimiser(config: GCLConfig, learning_rate: Array) -> optax.GradientTransformation:
     """Clipped AdamW on ``params.net`` with a traced learning rate (kept in the optimiser state)."""
 
-    def decay_mask(net: dict) -> dict:
-        mask = jax.tree.map(lambda _: False, net)
-        mask["A"] = True
-        mask["features"] = jax.tree_util.tree_map_with_path(
-            lambda path, _: path[-1].key == "kernel" and path[0].key != "linear",
-            net["features"],
-        )
-        return mask
-
-    def chain(learning_rate):
-        return optax.chain(
-            optax.clip_by_global_norm(config.max_grad_norm),
-            optax.adamw(learning_rate, weight_decay=config.weight_decay, mask=decay_mask),
-        )
-
+    chain = lambda learning_rate: cost_optimiser(config, learning_rate)
     return optax.inject_hyperparams(chain)(learning_rate=learning_rate)
 
 

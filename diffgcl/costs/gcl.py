@@ -290,23 +290,29 @@ class CostLearner(NamedTuple):
     optimiser: optax.GradientTransformation
 
 
+def weight_decay_mask(net: dict) -> dict:
+    """Weight decay on the output map ``A`` and every kernel under ``features`` except the
+    linear branch (``linear_skip``); never on biases or the action weight."""
+    mask = jax.tree.map(lambda _: False, net)
+    mask["A"] = True
+    mask["features"] = jax.tree_util.tree_map_with_path(
+        lambda path, _: path[-1].key == "kernel" and path[0].key != "linear",
+        net["features"],
+    )
+    return mask
+
+
+def cost_optimiser(config: GCLConfig, learning_rate) -> optax.GradientTransformation:
+    """Clipped AdamW on ``params.net`` (the learning rate may be a traced value)."""
+    return optax.chain(
+        optax.clip_by_global_norm(config.max_grad_norm),
+        optax.adamw(learning_rate, weight_decay=config.weight_decay, mask=weight_decay_mask),
+    )
+
+
 def make_cost_learner(network: CostNetwork, config: GCLConfig) -> CostLearner:
     """Build the (init, update) pair of the GCL cost update for ``network``."""
-
-    def decay_mask(net: dict) -> dict:
-        mask = jax.tree.map(lambda _: False, net)
-        mask["A"] = True
-        # Every kernel under ``features`` except the linear branch (``linear_skip``).
-        mask["features"] = jax.tree_util.tree_map_with_path(
-            lambda path, _: path[-1].key == "kernel" and path[0].key != "linear",
-            net["features"],
-        )
-        return mask
-
-    optimiser = optax.chain(
-        optax.clip_by_global_norm(config.max_grad_norm),
-        optax.adamw(config.learning_rate, weight_decay=config.weight_decay, mask=decay_mask),
-    )
+    optimiser = cost_optimiser(config, config.learning_rate)
 
     def init(key: PRNGKey, params: CostParams | None = None) -> GCLState:
         params = network.init(key) if params is None else params
