@@ -96,3 +96,14 @@ def test_vmap_over_conditions():
     buffers = jax.jit(jax.vmap(buffer_add))(buffers, ctrls, X, U)
     assert buffers.valid.shape == (3, 4) and buffers.valid[:, :2].all()
     np.testing.assert_allclose(buffers.controllers.k[:, 0, 0, 0], [0.0, 1.0, 2.0])
+
+
+def test_empty_buffer_placeholders_equal_make_controller():
+    """init_buffer writes the identity placeholders out (no LAPACK call); they must be exactly
+    what make_controller builds from Σ = I."""
+    buf = init_buffer(6, 3, 5, 4, 2, jnp.float64)
+    ref = make_controller(
+        jnp.zeros((3, 5, 2, 4)), jnp.zeros((3, 5, 2)), jnp.broadcast_to(jnp.eye(2), (3, 5, 2, 2))
+    )
+    for a, b in zip(jax.tree.leaves(buf.controllers), jax.tree.leaves(ref), strict=True):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

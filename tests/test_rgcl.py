@@ -283,16 +283,6 @@ def test_arm_experiment_fast(tmp_path):
         assert key in s, key
 
 
-def test_empty_buffer_matches_init_buffer():
-    from diffgcl.algorithms.rgcl import empty_buffer
-    from diffgcl.costs.buffer import init_buffer
-
-    ours = empty_buffer(6, 3, 5, 4, 2, jnp.float64)
-    theirs = init_buffer(6, 3, 5, 4, 2, jnp.float64)
-    for a, b in zip(jax.tree.leaves(ours), jax.tree.leaves(theirs), strict=True):
-        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
-
-
 def test_seed_variant_model_samples_run(slider):
     """The paper presets' path: cost samples from the fitted linear-Gaussian model, one Adam step
     per update, pre-training on the demos alone."""

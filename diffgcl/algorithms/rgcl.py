@@ -27,7 +27,7 @@ executor runs as many of them concurrently as the pool has threads (2 here), the
 deadlocks (measured: an 8-seed vmapped arm run hung in ``lapack_strsm_ffi``). The proposal
 densities of :mod:`diffgcl.costs.gcl` / :mod:`diffgcl.costs.model_samples` avoid LAPACK; the
 demos' controller is fitted once on the host (:func:`demo_batch`) and the empty sample buffer is
-built without a Cholesky call (:func:`empty_buffer`).
+built without a Cholesky call (:func:`diffgcl.costs.buffer.init_buffer`).
 
 Everything is pure: :func:`make_train` returns ``train(key, demos, hparams) -> (state, metrics)``;
 ``jax.jit(jax.vmap(train))`` over keys and :class:`RGCLHyperparams` (KL step, initial controller
@@ -63,7 +63,7 @@ from diffgcl.algorithms.gps import (
     GPSState,
     make_gps_phases,
 )
-from diffgcl.costs.buffer import SampleBuffer, buffer_add
+from diffgcl.costs.buffer import SampleBuffer, buffer_add, init_buffer
 from diffgcl.costs.demo_controller import fit_demo_controller
 from diffgcl.costs.gcl import (
     GCLConfig,
@@ -226,31 +226,6 @@ class RGCL(NamedTuple):
     network: CostNetwork
 
 
-def empty_buffer(
-    capacity: int, max_controllers: int, T: int, dX: int, dU: int, dtype
-) -> SampleBuffer:
-    """An empty :class:`SampleBuffer` (placeholder controllers with identity covariance, built
-    without a Cholesky call)."""
-    eye = jnp.broadcast_to(jnp.eye(dU, dtype=dtype), (max_controllers, T, dU, dU))
-    placeholder = LinearGaussianController(
-        K=jnp.zeros((max_controllers, T, dU, dX), dtype),
-        k=jnp.zeros((max_controllers, T, dU), dtype),
-        cov=eye,
-        chol_cov=eye,
-        inv_cov=eye,
-    )
-    return SampleBuffer(
-        X=jnp.zeros((capacity, T + 1, dX), dtype),
-        U=jnp.zeros((capacity, T, dU), dtype),
-        source=jnp.zeros(capacity, jnp.int32),
-        valid=jnp.zeros(capacity, bool),
-        controllers=placeholder,
-        controller_valid=jnp.zeros(max_controllers, bool),
-        next_sample=jnp.zeros((), jnp.int32),
-        next_controller=jnp.zeros((), jnp.int32),
-    )
-
-
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
     """The cost network of ``config`` for ``env`` (parameters in the run's float dtype)."""
     dtype = jnp.asarray(env.initial_states()).dtype
@@ -370,7 +345,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             params=params, opt_state=optimiser.init(params.net), step=jnp.zeros((), jnp.int32)
         )
         Kc = config.buffer_controllers
-        empty = empty_buffer(N * Kc, Kc, T, dX, dU, dtype)
+        empty = init_buffer(N * Kc, Kc, T, dX, dU, dtype)
         buffer = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), empty)
         if config.pretrain and gcl_cfg.pretrain_steps > 0:
             pre_buffer = buffer

@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from diffgcl.types import Array, LinearGaussianController, make_controller
+from diffgcl.types import Array, LinearGaussianController
 
 
 @struct.dataclass
@@ -56,10 +56,21 @@ class SampleBuffer:
 def init_buffer(
     capacity: int, max_controllers: int, T: int, dX: int, dU: int, dtype=jnp.float32
 ) -> SampleBuffer:
-    """An empty buffer: ``capacity`` trajectory slots, ``max_controllers`` controller slots."""
+    """An empty buffer: ``capacity`` trajectory slots, ``max_controllers`` controller slots.
+
+    The placeholder controllers (K = 0, k = 0, Σ = I) are written out rather than built with
+    :func:`make_controller`: with Σ = I its Cholesky factor and precision are I too, and avoiding
+    the LAPACK call keeps this safe inside wide vmapped programs (jaxlib 0.10.2's batched LAPACK
+    calls can deadlock the CPU thread pool when several run at once).
+    """
     eye = jnp.broadcast_to(jnp.eye(dU, dtype=dtype), (max_controllers, T, dU, dU))
-    K = jnp.zeros((max_controllers, T, dU, dX), dtype)
-    controllers = make_controller(K, jnp.zeros((max_controllers, T, dU), dtype), eye)
+    controllers = LinearGaussianController(
+        K=jnp.zeros((max_controllers, T, dU, dX), dtype),
+        k=jnp.zeros((max_controllers, T, dU), dtype),
+        cov=eye,
+        chol_cov=eye,
+        inv_cov=eye,
+    )
     return SampleBuffer(
         X=jnp.zeros((capacity, T + 1, dX), dtype),
         U=jnp.zeros((capacity, T, dU), dtype),

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import os
 from collections.abc import Collection, Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -178,10 +178,9 @@ def open_bag(path: str | os.PathLike) -> Iterator[AnyReader]:
     try:
         yield reader
     finally:
-        try:
+        # Closing a broken reader must not hide the real error.
+        with suppress(Exception):
             reader.close()
-        except Exception:  # noqa: S110 -- closing a broken reader must not hide the real error
-            pass
 
 
 def _one_line(err: BaseException) -> str:
