@@ -136,6 +136,7 @@ def main(argv=None) -> int:
         print(f"[{schedule}] {args.preset}: {n} seeds, {config.iterations} iterations")
         res = run_schedule(config, env, demos, seeds)
         cost_eval = evaluate_cost(config, env, res["state"].cost.params, seeds)
+        c_iters = res["metrics"].gps.c_step_iterations
         s = {
             f"success_rate_{schedule}": float(res["success"].mean()),
             f"successes_{schedule}": int(res["success"].sum()),
@@ -147,6 +148,8 @@ def main(argv=None) -> int:
             f"final_true_cost_{schedule}": float(res["metrics"].gps.cost[:, -1, -1].mean()),
             f"rollbacks_{schedule}": int(res["metrics"].rolled_back.sum()),
             f"c_step_failures_{schedule}": int(res["metrics"].gps.c_step_failed.sum()),
+            f"c_step_iterations_mean_{schedule}": float(c_iters.mean()),
+            f"c_step_iterations_max_{schedule}": int(c_iters.max()),
             f"config_{schedule}": config.to_dict(),
         }
         summary.update(s)

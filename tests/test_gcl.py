@@ -20,6 +20,7 @@ from diffgcl.costs.gcl import (
     WeightedSamples,
     fusion_weighted_samples,
     gcl_objective,
+    goal_penalty,
     lcr_penalty,
     make_cost_learner,
     mono_penalty,
@@ -168,9 +169,32 @@ def test_regulariser_weights_enter_the_objective():
     params = NET.init(jax.random.key(0))
     demos, samples = random_set(jax.random.key(1), 3), random_set(jax.random.key(2), 4)
     base, m = gcl_objective(NET, params, demos, samples, GCLConfig())
-    reg, _ = gcl_objective(NET, params, demos, samples, GCLConfig(lcr_weight=2.0, mono_weight=3.0))
-    np.testing.assert_allclose(reg, base + 2.0 * m.lcr + 3.0 * m.mono)
-    assert m.lcr > 0 and m.mono >= 0
+    config = GCLConfig(lcr_weight=2.0, mono_weight=3.0, goal_weight=0.5)
+    reg, _ = gcl_objective(NET, params, demos, samples, config)
+    np.testing.assert_allclose(reg, base + 2.0 * m.lcr + 3.0 * m.mono + 0.5 * m.goal)
+    assert m.lcr > 0 and m.mono >= 0 and m.goal > 0
+
+
+def test_goal_penalty_matches_finite_differences_in_normalised_coordinates():
+    """‖∂s/∂z‖² at the final state, against central differences of s(mean + std·z) in z."""
+    net = CostNetwork(CostNetworkConfig(hidden=()), dX=4, dU=2, param_dtype=jnp.float64)
+    params = net.init(jax.random.key(3))
+    mean, var = jnp.array([0.3, -0.2, 0.1, 0.0]), jnp.array([4.0, 0.25, 1.0, 9.0])
+    norm = params.norm.replace(mean=mean, var=var)
+    params = params.replace(norm=norm)
+    X = jax.random.normal(jax.random.key(4), (6, 4), jnp.float64)
+    std = jnp.sqrt(norm.var)
+    s = lambda z: jnp.sum(net.state_residual(params, norm.mean + std * z, 5) ** 2)
+    z_T = (X[-1] - norm.mean) / std
+    h = 1e-6
+    fd = np.array([(s(z_T + h * e) - s(z_T - h * e)) / (2 * h) for e in np.eye(4)])
+    np.testing.assert_allclose(goal_penalty(net, params, X), np.sum(fd**2), rtol=1e-6)
+    # Zero at a stationary point of the state cost: move the final state to the minimiser of
+    # this quadratic (least squares of the affine residual in x).
+    r0 = net.state_residual(params, jnp.zeros(4), 5)
+    J = jax.jacfwd(lambda x: net.state_residual(params, x, 5))(jnp.zeros(4))
+    x_star = -np.linalg.lstsq(np.asarray(J), np.asarray(r0), rcond=None)[0]
+    assert goal_penalty(net, params, X.at[-1].set(x_star)) < 1e-12
 
 
 @pytest.mark.parametrize("demos_in_partition", [True, False])

@@ -323,7 +323,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
 
         if n_steps == 0:
             zero = jnp.zeros((), dtype)
-            return cost, GCLMetrics(*(zero for _ in range(7)))
+            return cost, GCLMetrics(*(zero for _ in dataclasses.fields(GCLMetrics)))
         cost, metrics = lax.scan(step, cost, jax.random.split(key, n_steps))
         return cost, jax.tree.map(jnp.mean, metrics)
 

@@ -36,7 +36,15 @@ make every sequence jagged and the penalty would fight ``w_u`` rather than shape
   cost increases by more than the slack ``m`` (GCL's form, m = 1; m < 0 demands strict decrease).
   The GPS port's opposite sign penalised decreases, which contradicts the demos reaching a goal.
 
-Both are averaged over the trajectories they apply to. The update is optax Adam on ``params.net``
+* goal (ours, off by default) on demos: ``g_goal(τ) = ‖∂s/∂z (x_T)‖²``, the squared gradient of
+  the state cost at the demo's final state with respect to the *normalised* state ``z`` (so the
+  weight is unit-free). It says that the demonstrator ends where it wants to stay: the final state
+  is a stationary point of the state cost. Sample-based MaxEnt IOC does not pin the cost's
+  minimum by itself — once the samples overlap the demos near the goal the objective has no
+  gradient there, and a demonstrator that overshoots (the arm's GPS expert does, by 0.14 rad)
+  drags the minimum into the overshoot.
+
+All are averaged over the trajectories they apply to. The update is optax Adam on ``params.net``
 (the input normaliser is data, not a parameter) with ``n_steps`` minibatch steps in ``lax.scan``.
 
 Pre-training: :meth:`CostLearner.pretrain` runs the same objective for ``pretrain_steps`` steps
@@ -82,7 +90,7 @@ class GCLConfig:
     nonlinear features towards zero; fusion: mixture proposal (else
     each sample's own proposal); demos_in_partition: append the demo batch to the partition term;
     mixture: ``"counts"`` or ``"uniform"`` (see the module docstring); lcr_weight, mono_weight,
-    mono_slack: regularisers.
+    mono_slack: regularisers; goal_weight: the goal regulariser (see the module docstring).
     """
 
     n_steps: int = 20
@@ -98,6 +106,7 @@ class GCLConfig:
     lcr_weight: float = 0.0
     mono_weight: float = 0.0
     mono_slack: float = 1.0
+    goal_weight: float = 0.0
 
 
 @struct.dataclass
@@ -126,14 +135,16 @@ class GCLState:
 @struct.dataclass
 class GCLMetrics:
     """Per gradient step (stacked to [n_steps] by the update): loss, demo_cost (mean demo
-    trajectory cost), log_partition, lcr, mono, ess (effective sample size of the normalised
-    partition weights, averaged over conditions), grad_norm."""
+    trajectory cost), log_partition, lcr, mono, goal (the regularisers' unweighted values), ess
+    (effective sample size of the normalised partition weights, averaged over conditions),
+    grad_norm."""
 
     loss: Array
     demo_cost: Array
     log_partition: Array
     lcr: Array
     mono: Array
+    goal: Array
     ess: Array
     grad_norm: Array
 
@@ -146,6 +157,19 @@ def lcr_penalty(s: Array) -> Array:
 def mono_penalty(s: Array, slack: float) -> Array:
     """Monotonic decrease ``Σ_t max(0, s_t − s_{t−1} − slack)²`` of ``s: [T+1]``."""
     return jnp.sum(jnp.maximum(0.0, s[1:] - s[:-1] - slack) ** 2)
+
+
+def goal_penalty(network: CostNetwork, params: CostParams, X: Array) -> Array:
+    """``‖∂s/∂z‖²`` at the final state ``X[-1]`` of one trajectory ``X: [T+1, dX]``, with ``s`` the
+    state cost and ``z`` the normalised state (chain rule through the normaliser's scale)."""
+    T = X.shape[0] - 1
+
+    def s(x):
+        return jnp.sum(network.state_residual(params, x, T) ** 2)
+
+    norm = jax.lax.stop_gradient(params.norm)
+    std = jnp.maximum(jnp.sqrt(norm.var), network.config.std_floor)
+    return jnp.sum((jax.grad(s)(X[-1]) * std) ** 2)
 
 
 def _mixture_log_weights(
@@ -247,14 +271,23 @@ def gcl_objective(
     lcr = _masked_mean(lcr_all, jnp.concatenate([samples.valid, demos.valid]))
     mono_all = jax.vmap(mono_penalty, in_axes=(0, None))(s_demo, config.mono_slack)
     mono = _masked_mean(mono_all, demos.valid)
+    goal_all = jax.vmap(goal_penalty, in_axes=(None, None, 0))(network, params, demos.X)
+    goal = _masked_mean(goal_all, demos.valid)
 
-    loss = demo_cost + log_partition + config.lcr_weight * lcr + config.mono_weight * mono
+    loss = (
+        demo_cost
+        + log_partition
+        + config.lcr_weight * lcr
+        + config.mono_weight * mono
+        + config.goal_weight * goal
+    )
     metrics = GCLMetrics(
         loss=loss,
         demo_cost=demo_cost,
         log_partition=log_partition,
         lcr=lcr,
         mono=mono,
+        goal=goal,
         ess=ess,
         grad_norm=jnp.zeros_like(loss),
     )
