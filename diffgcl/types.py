@@ -18,8 +18,9 @@ from collections.abc import Callable
 from typing import Protocol, runtime_checkable
 
 import jax
-import jax.numpy as jnp
 from flax import struct
+
+from diffgcl import linalg
 
 Array = jax.Array
 PRNGKey = jax.Array
@@ -68,11 +69,9 @@ class LinearGaussianController:
 
 def make_controller(K: Array, k: Array, cov: Array) -> LinearGaussianController:
     """A controller whose Cholesky factor and precision are computed from ``cov: [T, dU, dU]``."""
-    cov = 0.5 * (cov + jnp.swapaxes(cov, -1, -2))
-    chol = jnp.linalg.cholesky(cov)
-    eye = jnp.broadcast_to(jnp.eye(cov.shape[-1], dtype=cov.dtype), cov.shape)
-    chol_inv = jax.scipy.linalg.solve_triangular(chol, eye, lower=True)
-    inv_cov = jnp.swapaxes(chol_inv, -1, -2) @ chol_inv
+    cov = linalg.symmetrise(cov)
+    chol = linalg.cholesky(cov)
+    inv_cov = linalg.inverse_from_cholesky(chol)
     return LinearGaussianController(K=K, k=k, cov=cov, chol_cov=chol, inv_cov=inv_cov)
 
 

@@ -24,10 +24,10 @@ trajectories of the current controller in the fitted linear-Gaussian model with 
 No LAPACK inside the vmapped program: jaxlib 0.10.2's CPU LAPACK kernels (triangular solve,
 Cholesky, LU) split a large batch over the intra-op thread pool and block on it; when the thunk
 executor runs as many of them concurrently as the pool has threads (2 here), the process
-deadlocks (measured: an 8-seed vmapped arm run hung in ``lapack_strsm_ffi``). The proposal
-densities of :mod:`diffgcl.costs.gcl` / :mod:`diffgcl.costs.model_samples` avoid LAPACK; the
-demos' controller is fitted once on the host (:func:`demo_batch`) and the empty sample buffer is
-built without a Cholesky call (:func:`diffgcl.costs.buffer.init_buffer`).
+deadlocks (measured: an 8-seed vmapped arm run hung in ``lapack_strsm_ffi``). The LQR, the
+controllers and the proposal densities use the unrolled small-matrix routines of
+:mod:`diffgcl.linalg`; the demos' controller (a least-squares fit) is fitted once on the host
+(:func:`demo_batch`).
 
 Everything is pure: :func:`make_train` returns ``train(key, demos, hparams) -> (state, metrics)``;
 ``jax.jit(jax.vmap(train))`` over keys and :class:`RGCLHyperparams` (KL step, initial controller

@@ -19,11 +19,11 @@ outputs stay finite); :mod:`diffgcl.control.dual` reacts by raising η.
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
+from diffgcl import linalg
 from diffgcl.types import (
     Array,
     InitialStateDistribution,
@@ -107,14 +107,14 @@ def lqr_backward(dynamics: LinearDynamics, cost: QuadraticCost) -> BackwardResul
         q_x = l_x + A.T @ Vc
         q_u = l_u + B.T @ Vc
 
-        L = jnp.linalg.cholesky(Q_uu)
+        L = linalg.cholesky(Q_uu)
         pd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
         L = jnp.where(pd, L, eye_u)
         Q_uu = jnp.where(pd, Q_uu, eye_u)
-        cov = _sym(jax.scipy.linalg.cho_solve((L, True), eye_u))
-        chol_cov = jnp.linalg.cholesky(cov)
-        K = -jax.scipy.linalg.cho_solve((L, True), Q_ux)
-        k = -jax.scipy.linalg.cho_solve((L, True), q_u)
+        cov = _sym(linalg.inverse_from_cholesky(L))
+        chol_cov = linalg.cholesky(cov)
+        K = -linalg.cho_solve(L, Q_ux)
+        k = -linalg.cho_solve(L, q_u)
         V_new = _sym(Q_xx + Q_ux.T @ K)
         v_new = q_x + Q_ux.T @ k
 

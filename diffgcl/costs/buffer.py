@@ -23,7 +23,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from diffgcl.types import Array, LinearGaussianController
+from diffgcl.types import Array, LinearGaussianController, make_controller
 
 
 @struct.dataclass
@@ -56,20 +56,12 @@ class SampleBuffer:
 def init_buffer(
     capacity: int, max_controllers: int, T: int, dX: int, dU: int, dtype=jnp.float32
 ) -> SampleBuffer:
-    """An empty buffer: ``capacity`` trajectory slots, ``max_controllers`` controller slots.
-
-    The placeholder controllers (K = 0, k = 0, Σ = I) are written out rather than built with
-    :func:`make_controller`: with Σ = I its Cholesky factor and precision are I too, and avoiding
-    the LAPACK call keeps this safe inside wide vmapped programs (jaxlib 0.10.2's batched LAPACK
-    calls can deadlock the CPU thread pool when several run at once).
-    """
-    eye = jnp.broadcast_to(jnp.eye(dU, dtype=dtype), (max_controllers, T, dU, dU))
-    controllers = LinearGaussianController(
-        K=jnp.zeros((max_controllers, T, dU, dX), dtype),
-        k=jnp.zeros((max_controllers, T, dU), dtype),
-        cov=eye,
-        chol_cov=eye,
-        inv_cov=eye,
+    """An empty buffer: ``capacity`` trajectory slots, ``max_controllers`` controller slots
+    holding placeholder controllers (K = 0, k = 0, Σ = I)."""
+    controllers = make_controller(
+        jnp.zeros((max_controllers, T, dU, dX), dtype),
+        jnp.zeros((max_controllers, T, dU), dtype),
+        jnp.broadcast_to(jnp.eye(dU, dtype=dtype), (max_controllers, T, dU, dU)),
     )
     return SampleBuffer(
         X=jnp.zeros((capacity, T + 1, dX), dtype),

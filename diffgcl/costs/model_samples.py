@@ -9,9 +9,8 @@ Only the current iteration's controller is used (no fusion), as in the seed. The
 densities under the same model (:func:`model_log_density`) put them in the partition term.
 
 Σ_dyn may be singular (a deterministic model): it gets a small jitter ``dyn_jitter · I`` for
-sampling and density alike. The small Cholesky factorisations and triangular solves are unrolled
-jnp code rather than LAPACK calls (jaxlib's batched CPU LAPACK kernels can deadlock the 2-thread
-pool inside wide vmapped programs).
+sampling and density alike. The small Cholesky factorisations and triangular solves are the
+unrolled ones of :mod:`diffgcl.linalg`, not LAPACK calls.
 """
 
 from __future__ import annotations
@@ -19,6 +18,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from diffgcl import linalg
 from diffgcl.costs.buffer import action_log_density
 from diffgcl.costs.gcl import WeightedSamples
 from diffgcl.types import (
@@ -30,34 +30,17 @@ from diffgcl.types import (
 )
 
 
-def _forward_substitution(L: Array, b: Array) -> Array:
-    """``L⁻¹ b`` for lower-triangular ``L: [n, n]``, unrolled over the (small, static) n."""
-    y = []
-    for i in range(b.shape[-1]):
-        partial = sum((L[i, j] * y[j] for j in range(i)), jnp.zeros((), b.dtype))
-        y.append((b[i] - partial) / L[i, i])
-    return jnp.stack(y)
-
-
 def _gaussian_log_density(x: Array, mean: Array, chol: Array) -> Array:
     """``log N(x; mean, L Lᵀ)`` for ``x: [n]``, ``chol = L: [n, n]``."""
-    white = _forward_substitution(chol, x - mean)
+    white = linalg.solve_lower(chol, (x - mean)[:, None])[:, 0]
     log_det = 2.0 * jnp.log(jnp.diagonal(chol)).sum()
     return -0.5 * (white @ white + log_det + x.shape[-1] * jnp.log(2.0 * jnp.pi))
 
 
 def _chol(cov: Array, jitter: float) -> Array:
-    """Lower Cholesky factor of ``cov + jitter·I`` (symmetrised), ``cov: [n, n]``, by the unrolled
-    column recursion (plain jnp, no LAPACK; n is small and static)."""
-    n = cov.shape[-1]
-    A = 0.5 * (cov + jnp.swapaxes(cov, -1, -2)) + jitter * jnp.eye(n, dtype=cov.dtype)
-    L = jnp.zeros_like(A)
-    for j in range(n):
-        d = jnp.sqrt(A[j, j] - L[j, :j] @ L[j, :j])
-        L = L.at[j, j].set(d)
-        if j + 1 < n:
-            L = L.at[j + 1 :, j].set((A[j + 1 :, j] - L[j + 1 :, :j] @ L[j, :j]) / d)
-    return L
+    """Lower Cholesky factor of ``cov + jitter·I`` (symmetrised), ``cov: [n, n]``."""
+    eye = jnp.eye(cov.shape[-1], dtype=cov.dtype)
+    return linalg.cholesky(linalg.symmetrise(cov) + jitter * eye)
 
 
 def model_log_density(
