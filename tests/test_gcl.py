@@ -23,6 +23,7 @@ from diffgcl.costs.gcl import (
     goal_penalty,
     lcr_penalty,
     make_cost_learner,
+    minibatch,
     mono_penalty,
 )
 from diffgcl.costs.model_samples import model_log_density, model_weighted_samples
@@ -263,6 +264,24 @@ def test_minibatch_of_partly_empty_buffer_is_masked():
         learner.init(jax.random.key(0)), jax.random.key(1), demos, samples
     )
     assert jnp.all(jnp.isfinite(metrics.loss)) and jnp.all(metrics.ess <= 4 + 3 + 1e-9)
+
+
+def test_minibatch_draws_distinct_valid_entries_uniformly():
+    valid = jnp.array([True, False, True, True, False, True])
+    data = WeightedSamples(
+        X=jnp.arange(6.0)[:, None, None], U=jnp.zeros((6, 1, 1)), log_q=jnp.zeros(6), valid=valid
+    )
+    draw = jax.jit(jax.vmap(lambda k: minibatch(k, data, 3)))
+    batch = draw(jax.random.split(jax.random.key(0), 4000))
+    picked = np.asarray(batch.X[:, :, 0, 0]).astype(int)
+    assert batch.valid.all() and all(len(set(row)) == 3 for row in picked)
+    counts = np.bincount(picked.ravel(), minlength=6) / picked.size
+    np.testing.assert_allclose(counts[[0, 2, 3, 5]], 0.25, atol=0.02)  # uniform over the valid 4
+    assert counts[1] == counts[4] == 0
+    # Asking for more than there are: the surplus entries are masked.
+    full = minibatch(jax.random.key(1), data, 6)
+    chosen = set(np.asarray(full.X[full.valid, 0, 0]).astype(int).tolist())
+    assert int(full.valid.sum()) == 4 and chosen == {0, 2, 3, 5}
 
 
 def test_demo_controller_recovers_a_known_controller():

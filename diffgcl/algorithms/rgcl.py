@@ -72,6 +72,7 @@ from diffgcl.costs.gcl import (
     cost_optimiser,
     fusion_weighted_samples,
     make_cost_learner,
+    minibatch,
 )
 from diffgcl.costs.model_samples import model_weighted_samples
 from diffgcl.costs.network import (
@@ -239,15 +240,6 @@ def _make_optimiser(config: GCLConfig, learning_rate: Array) -> optax.GradientTr
     return optax.inject_hyperparams(chain)(learning_rate=learning_rate)
 
 
-def _pick(key: PRNGKey, data: WeightedSamples, n: int) -> WeightedSamples:
-    """``n`` distinct valid entries of ``data: [S]`` drawn uniformly (Gumbel top-k); entries past
-    the number of valid ones come back with ``valid=False``."""
-    n = min(n, data.valid.shape[0])
-    score = jax.random.gumbel(key, data.valid.shape, data.X.dtype)
-    _, idx = lax.top_k(jnp.where(data.valid, score, -jnp.inf), n)
-    return jax.tree.map(lambda a: a[idx], data)
-
-
 def make_train(config: RGCLConfig, env: Env) -> RGCL:
     """Set up rGCL on ``env``; see the module docstring and :class:`RGCL`."""
     gps_config = dataclasses.replace(config.gps, gauss_newton=True)
@@ -306,7 +298,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
 
         def step(cost: CostState, key: PRNGKey):
             key_demo, key_samp = jax.random.split(key)
-            pick = jax.vmap(_pick, in_axes=(0, 0, None))
+            pick = jax.vmap(minibatch, in_axes=(0, 0, None))
             d = pick(jax.random.split(key_demo, C), demos_w, gcl_cfg.demo_batch)
             s = pick(jax.random.split(key_samp, C), samples_w, gcl_cfg.sample_batch)
 

@@ -302,7 +302,9 @@ def _select(key: PRNGKey, valid: Array, n: int) -> tuple[Array, Array]:
     return idx, valid[idx]
 
 
-def _minibatch(key: PRNGKey, data: WeightedSamples, n: int) -> WeightedSamples:
+def minibatch(key: PRNGKey, data: WeightedSamples, n: int) -> WeightedSamples:
+    """``n`` distinct valid entries of ``data: [S]`` drawn uniformly; entries past the number of
+    valid ones come back with ``valid=False``."""
     idx, mask = _select(key, data.valid, min(n, data.valid.shape[-1]))
     taken = jax.tree.map(lambda a: a[idx], data)
     return taken.replace(valid=mask)
@@ -364,10 +366,10 @@ def make_cost_learner(network: CostNetwork, config: GCLConfig) -> CostLearner:
 
         def step(state: GCLState, key: PRNGKey):
             key_demo, key_samp = jax.random.split(key)
-            demo_batch = jax.vmap(_minibatch, in_axes=(0, 0, None))(
+            demo_batch = jax.vmap(minibatch, in_axes=(0, 0, None))(
                 jax.random.split(key_demo, C), demos, config.demo_batch
             )
-            samp_batch = jax.vmap(_minibatch, in_axes=(0, 0, None))(
+            samp_batch = jax.vmap(minibatch, in_axes=(0, 0, None))(
                 jax.random.split(key_samp, C), samples, config.sample_batch
             )
             grads, metrics = jax.grad(batch_loss, has_aux=True)(

@@ -1,0 +1,135 @@
+"""Where an rGCL iteration spends its time, and how well each phase batches over seeds (issue 6's
+sweep speed-up).
+
+For the ``default`` v2 preset on the arm, each phase is timed as one jitted single-seed call and
+as one jitted ``vmap`` over N seeds (best of 5, after compilation); the reference is the single
+call looped N times, as in ``experiments/arm_rgcl.py``'s sweep speed-up. GPS phases
+(:func:`diffgcl.algorithms.gps.make_gps_phases`, on the expert cost): ``outer`` (sampling and
+autodiff linearisation), ``expand`` (cost expansion), ``adapt_step`` (Laplace estimates),
+``inner`` (the η search: LQR backward/forward passes). Whole rGCL iterations
+(``RGCL.run``) with the cost update switched off (``gcl.n_steps=0``) and on give the cost
+update's share by difference.
+
+    python experiments/rgcl_phases.py [--seeds 32] [--json PATH]
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+
+def best_time(fn, *args, repeats: int = 5) -> float:
+    jax.block_until_ready(fn(*args))
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return min(times)
+
+
+def compare(name: str, single, single_args, batched, batched_args, n: int, rows: list) -> None:
+    t1 = best_time(single, *single_args)
+    tb = best_time(batched, *batched_args)
+    row = {"phase": name, "single_ms": 1e3 * t1, "loop_ms": 1e3 * n * t1, "vmapped_ms": 1e3 * tb}
+    row["speedup"] = n * t1 / tb
+    rows.append(row)
+    print(
+        f"{name:34s} single {row['single_ms']:7.2f} ms | loop of {n} {row['loop_ms']:8.1f} ms | "
+        f"vmapped {row['vmapped_ms']:8.1f} ms | speed-up {row['speedup']:5.2f}x",
+        flush=True,
+    )
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seeds", type=int, default=32)
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+
+    from diffgcl.algorithms.gps import make_gps_phases
+    from diffgcl.algorithms.presets import default, with_overrides
+    from diffgcl.algorithms.rgcl import make_train
+    from diffgcl.algorithms.rgcl_cli import load_demos
+    from diffgcl.envs import make_env
+    from diffgcl.runtime import enable_compilation_cache
+
+    enable_compilation_cache()
+    env = make_env("arm")
+    n = args.seeds
+    keys = jax.random.split(jax.random.PRNGKey(0), n)
+    rows: list = []
+
+    # GPS phases on the expert cost (full-Hessian expansion; the learned cost uses Gauss–Newton).
+    config = default("v2")
+    phases = make_gps_phases(
+        dataclasses.replace(config.gps, gauss_newton=False), env, true_cost=env.expert_cost
+    )
+    vm = lambda f: jax.jit(jax.vmap(f))
+    state1, states = jax.jit(phases.init)(keys[0]), vm(phases.init)(keys)
+    outer1, outerb = jax.jit(phases.outer), vm(phases.outer)
+    s1, sb = outer1(state1, keys[0]), outerb(states, keys)
+    expand = lambda s: phases.expand(env.expert_cost, s)
+    q1, qb = jax.jit(expand)(s1), vm(expand)(sb)
+    m1 = jax.jit(phases.adapt_step)(state1, s1, q1)
+    mb = vm(phases.adapt_step)(states, sb, qb)
+    outer_args = ((state1, keys[0]), (states, keys))
+    compare("GPS outer (sample + linearise)", outer1, outer_args[0], outerb, outer_args[1], n, rows)
+    compare("GPS expand (expert cost)", jax.jit(expand), (s1,), vm(expand), (sb,), n, rows)
+    compare(
+        "GPS adapt_step (Laplace estimates)",
+        jax.jit(phases.adapt_step),
+        (state1, s1, q1),
+        vm(phases.adapt_step),
+        (states, sb, qb),
+        n,
+        rows,
+    )
+    compare(
+        "GPS inner (eta search, LQR)",
+        jax.jit(phases.inner),
+        (state1, s1, q1, m1),
+        vm(phases.inner),
+        (states, sb, qb, mb),
+        n,
+        rows,
+    )
+
+    # Whole rGCL v2 iterations, without and with the cost update.
+    demos = load_demos(None, env)
+    variants = (("rGCL iteration, no cost update", ["gcl.n_steps=0"]), ("rGCL iteration", []))
+    for label, overrides in variants:
+        rgcl = make_train(with_overrides(config, overrides), env)
+        run = lambda s, k, rgcl=rgcl: rgcl.run(s, k, demos, 1)
+        init1 = jax.jit(rgcl.init)(keys[0], demos)
+        initb = jax.jit(jax.vmap(rgcl.init, in_axes=(0, None)))(keys, demos)
+        # A few iterations first, so that the sample buffer holds several controllers.
+        warm = lambda s, k, rgcl=rgcl: rgcl.run(s, k, demos, 5)[0]
+        init1 = jax.jit(warm)(init1, keys[0])
+        initb = jax.jit(jax.vmap(warm))(initb, keys)
+        compare(label, jax.jit(run), (init1, keys[1]), vm(run), (initb, keys), n, rows)
+    update = {k: rows[-1][k] - rows[-2][k] for k in ("single_ms", "loop_ms", "vmapped_ms")}
+    update["speedup"] = update["loop_ms"] / update["vmapped_ms"]
+    print(
+        f"{'cost update (difference)':34s} single {update['single_ms']:7.2f} ms | loop "
+        f"{update['loop_ms']:8.1f} ms | vmapped {update['vmapped_ms']:8.1f} ms | speed-up "
+        f"{update['speedup']:5.2f}x"
+    )
+    rows.append({"phase": "cost update (difference)", **update})
+    if args.json is not None:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        summary = {"seeds": n, "device": str(jax.devices()[0]), "phases": rows}
+        args.json.write_text(json.dumps(summary, indent=1))
+        print(f"summary in {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
