@@ -6,6 +6,7 @@ import numpy as np
 from scipy import stats
 
 from diffgcl.costs.buffer import (
+    action_log_densities,
     action_log_density,
     buffer_add,
     controller_log_densities,
@@ -31,7 +32,8 @@ def batch(value: float, n: int):
 def test_empty_buffer_masks_everything():
     buffer = init_buffer(6, 3, T, dX, dU, jnp.float64)
     assert not buffer.valid.any() and not buffer.controller_valid.any()
-    log_q = controller_log_densities(buffer, jnp.zeros((T + 1, dX)), jnp.zeros((T, dU)))
+    log_q = controller_log_densities(buffer, jnp.zeros((2, T + 1, dX)), jnp.zeros((2, T, dU)))
+    assert log_q.shape == (2, 3)
     assert jnp.all(log_q == -jnp.inf)
 
 
@@ -83,9 +85,32 @@ def test_action_log_density_matches_scipy():
     )
     np.testing.assert_allclose(action_log_density(ctrl, X, U), ref, rtol=1e-12)
     buffer = add(init_buffer(2, 2, T, dX, dU, jnp.float64), ctrl, X[None], U[None])
-    log_q = controller_log_densities(buffer, X, U)
+    log_q = controller_log_densities(buffer, X[None], U[None])[0]
     np.testing.assert_allclose(log_q[0], ref, rtol=1e-12)
     assert log_q[1] == -jnp.inf
+
+
+def test_densities_of_every_trajectory_under_every_controller_match_scipy():
+    """[S, Kc] densities with dX = 3 ≠ dU = 2 and time-varying gains (catches transposed
+    indices in the written-out residual and quadratic form)."""
+    Kc, S, T_, dX_, dU_ = 3, 4, 5, 3, 2
+    keys = jax.random.split(jax.random.key(2), 5)
+    K = jax.random.normal(keys[0], (Kc, T_, dU_, dX_))
+    k = jax.random.normal(keys[1], (Kc, T_, dU_))
+    M = jax.random.normal(keys[2], (Kc, T_, dU_, dU_))
+    ctrls = make_controller(K, k, M @ jnp.swapaxes(M, -1, -2) + 0.2 * jnp.eye(dU_))
+    X = jax.random.normal(keys[3], (S, T_ + 1, dX_))
+    U = jax.random.normal(keys[4], (S, T_, dU_))
+    got = jax.jit(action_log_densities)(ctrls, X, U)
+    for s in range(S):
+        for c in range(Kc):
+            ref = sum(
+                stats.multivariate_normal(
+                    np.asarray(K[c, t] @ X[s, t] + k[c, t]), np.asarray(ctrls.cov[c, t])
+                ).logpdf(np.asarray(U[s, t]))
+                for t in range(T_)
+            )
+            np.testing.assert_allclose(got[s, c], ref, rtol=1e-10)
 
 
 def test_vmap_over_conditions():

@@ -106,23 +106,41 @@ def buffer_add(
     )
 
 
-def action_log_density(controller: LinearGaussianController, X: Array, U: Array) -> Array:
-    """``Σ_t log N(u_t; K_t x_t + k_t, Σ_t)`` of one trajectory ``X: [T+1, dX]``, ``U: [T, dU]``.
+def action_log_densities(controllers: LinearGaussianController, X: Array, U: Array) -> Array:
+    """``Σ_t log N(u_t; K_t x_t + k_t, Σ_t)`` of every trajectory under every controller: [S, Kc].
 
-    From the controller's stored precision and Cholesky factor — matrix products only, no LAPACK
-    call: jaxlib's batched CPU triangular solves can deadlock the 2-thread pool when several run
-    at once inside a wide vmapped program (seen in the rGCL sweeps).
+    controllers: fields [Kc, T, ...]; X: [S, T+1, dX]; U: [S, T, dU]. From the stored precision
+    and Cholesky factor, no LAPACK. The residual and the quadratic form are written out over the
+    (small, static) dU and dX as elementwise products: XLA fuses them into one loop over
+    [S, Kc, T], which batches well under ``vmap`` over seeds. The einsum form ran as batched
+    small matrix products and was slower vmapped over 32 seeds than 32 single calls (measured:
+    fusion weights 119 ms vmapped vs 68 ms looped).
     """
-    r = U - (jnp.einsum("tij,tj->ti", controller.K, X[:-1]) + controller.k)
-    quad = jnp.einsum("ti,tij,tj->", r, controller.inv_cov, r)
-    log_det = 2.0 * jnp.log(jnp.diagonal(controller.chol_cov, axis1=-2, axis2=-1)).sum()
-    return -0.5 * (quad + log_det + U.size * jnp.log(2.0 * jnp.pi))
+    dU, dX = controllers.K.shape[-2:]
+    T = U.shape[-2]
+    x = X[:, None, :-1, :]  # [S, 1, T, dX]
+    u = U[:, None]  # [S, 1, T, dU]
+    K, k, P = controllers.K[None], controllers.k[None], controllers.inv_cov[None]
+    r = [
+        u[..., i] - k[..., i] - sum(K[..., i, j] * x[..., j] for j in range(dX)) for i in range(dU)
+    ]  # dU × [S, Kc, T]
+    quad = sum(P[..., i, j] * r[i] * r[j] for i in range(dU) for j in range(dU)).sum(-1)
+    log_det = 2.0 * jnp.log(jnp.diagonal(controllers.chol_cov, axis1=-2, axis2=-1)).sum((-2, -1))
+    return -0.5 * (quad + log_det[None] + T * dU * jnp.log(2.0 * jnp.pi))
+
+
+def action_log_density(controller: LinearGaussianController, X: Array, U: Array) -> Array:
+    """``Σ_t log N(u_t; K_t x_t + k_t, Σ_t)`` of one trajectory ``X: [T+1, dX]``, ``U: [T, dU]``
+    under one controller (fields [T, ...]); see :func:`action_log_densities`."""
+    one = jax.tree.map(lambda a: a[None], controller)
+    return action_log_densities(one, X[None], U[None])[0, 0]
 
 
 def controller_log_densities(buffer: SampleBuffer, X: Array, U: Array) -> Array:
-    """Log densities of one trajectory under each stored controller: [Kc] (``−inf``: empty slot)."""
-    log_q = jax.vmap(action_log_density, in_axes=(0, None, None))(buffer.controllers, X, U)
-    return jnp.where(buffer.controller_valid, log_q, -jnp.inf)
+    """Log densities of trajectories ``X: [S, T+1, dX]``, ``U: [S, T, dU]`` under each stored
+    controller: [S, Kc] (``−inf`` for an empty slot)."""
+    log_q = action_log_densities(buffer.controllers, X, U)
+    return jnp.where(buffer.controller_valid[None], log_q, -jnp.inf)
 
 
 def samples_per_controller(buffer: SampleBuffer) -> Array:

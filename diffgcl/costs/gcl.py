@@ -70,7 +70,7 @@ from flax import struct
 
 from diffgcl.costs.buffer import (
     SampleBuffer,
-    action_log_density,
+    action_log_densities,
     controller_log_densities,
     samples_per_controller,
 )
@@ -209,15 +209,19 @@ def fusion_weighted_samples(
     log_pi, log_pi_demo = _mixture_log_weights(counts, jnp.asarray(n_demos), n_samples, config)
 
     def log_proposal(X: Array, U: Array, own: Array | None) -> Array:
-        log_q_ctrl = controller_log_densities(buffer, X, U)
-        log_q_demo = action_log_density(demo_controller, X, U)
+        """Log proposal densities of trajectories [M] (``own``: each one's controller slot)."""
+        log_q_ctrl = controller_log_densities(buffer, X, U)  # [M, Kc]
+        demo_ctrl = jax.tree.map(lambda a: a[None], demo_controller)
+        log_q_demo = action_log_densities(demo_ctrl, X, U)[:, 0]  # [M]
         if not config.fusion:
-            return log_q_demo if own is None else log_q_ctrl[own]
-        terms = jnp.concatenate([log_pi + log_q_ctrl, (log_pi_demo + log_q_demo)[None]])
-        return jax.nn.logsumexp(terms)
+            if own is None:
+                return log_q_demo
+            return jnp.take_along_axis(log_q_ctrl, own[:, None], axis=1)[:, 0]
+        terms = jnp.concatenate([log_pi + log_q_ctrl, (log_pi_demo + log_q_demo)[:, None]], 1)
+        return jax.nn.logsumexp(terms, axis=1)
 
-    log_q_samples = jax.vmap(log_proposal)(buffer.X, buffer.U, buffer.source)
-    log_q_demos = jax.vmap(lambda X, U: log_proposal(X, U, None))(demo_X, demo_U)
+    log_q_samples = log_proposal(buffer.X, buffer.U, buffer.source)
+    log_q_demos = log_proposal(demo_X, demo_U, None)
     samples = WeightedSamples(X=buffer.X, U=buffer.U, log_q=log_q_samples, valid=buffer.valid)
     demos = WeightedSamples(X=demo_X, U=demo_U, log_q=log_q_demos, valid=jnp.ones(N, bool))
     return samples, demos
