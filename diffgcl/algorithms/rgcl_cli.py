@@ -251,7 +251,7 @@ def sweep_command(args) -> int:
 def load_run(run_dir: Path, env):
     """(config, RunResult, DemoBatch) of a run folder written by ``train``."""
     from diffgcl.algorithms.rgcl import make_train
-    from diffgcl.algorithms.runner import CHECKPOINT, RunResult, _load_checkpoint
+    from diffgcl.algorithms.runner import CHECKPOINT, RunResult, _load_checkpoint, checkpoint_like
 
     run_dir = Path(run_dir)
     config = config_from_dict(json.loads((run_dir / "config.json").read_text()))
@@ -269,13 +269,7 @@ def load_run(run_dir: Path, env):
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
     key_init, key_loop = jax.vmap(rgcl.split_key)(keys)
     hp = jax.tree.map(lambda a: jnp.broadcast_to(a, (S,)), rgcl.default_hparams())
-    state_like = jax.eval_shape(jax.vmap(rgcl.init, in_axes=(0, None, 0)), key_init, demos, hp)
-    m_like = jax.eval_shape(
-        jax.vmap(lambda s, k, d: rgcl.run(s, k, d, 1), in_axes=(0, 0, None)),
-        state_like,
-        key_loop,
-        demos,
-    )[1]
+    state_like, m_like = checkpoint_like(rgcl, key_init, key_loop, demos, hp)
     state, metrics, done, _ = _load_checkpoint(run_dir / CHECKPOINT, state_like, m_like)
     return config, RunResult(state=state, metrics=metrics, seeds=seeds, config=config), demos
 

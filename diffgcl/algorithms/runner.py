@@ -80,6 +80,19 @@ def _save_checkpoint(path: Path, state, metrics, done: int, seeds) -> None:
     os.replace(tmp, path)
 
 
+def checkpoint_like(rgcl, key_init, key_loop, demos, hparams):
+    """Shapes (``jax.eval_shape``) of a seed-vmapped run's state and of one iteration's metrics:
+    the pytree structures a checkpoint is read back into."""
+    state_like = jax.eval_shape(jax.vmap(rgcl.init, in_axes=(0, None, 0)), key_init, demos, hparams)
+    m_like = jax.eval_shape(
+        jax.vmap(lambda s, k, d: rgcl.run(s, k, d, 1), in_axes=(0, 0, None)),
+        state_like,
+        key_loop,
+        demos,
+    )[1]
+    return state_like, m_like
+
+
 def _load_checkpoint(path: Path, state_like, metrics_like):
     with np.load(path) as f:
         done = int(f["done"])
@@ -163,13 +176,7 @@ def train_seeds(
     done = 0
     run_seconds = 0.0
     if resume and ckpt is not None and ckpt.is_file():
-        state_like = jax.eval_shape(init_fn, key_init, demos, hparams)
-        m_like = jax.eval_shape(
-            jax.vmap(lambda s, k, d: rgcl.run(s, k, d, 1), in_axes=(0, 0, None)),
-            state_like,
-            key_loop,
-            demos,
-        )[1]
+        state_like, m_like = checkpoint_like(rgcl, key_init, key_loop, demos, hparams)
         m_like = jax.tree.map(lambda a: jax.ShapeDtypeStruct((S, 0, *a.shape[2:]), a.dtype), m_like)
         state, metrics, done, saved_seeds = _load_checkpoint(ckpt, state_like, m_like)
         if saved_seeds != seeds:
