@@ -39,6 +39,54 @@ def test_identity_features_without_hidden_layers():
     np.testing.assert_allclose(net.features(params, x)[:dX], x, rtol=1e-12)
 
 
+@pytest.mark.parametrize(
+    "config",
+    [
+        CostNetworkConfig(hidden=(), n_features=6),
+        CostNetworkConfig(hidden=(), n_features=6, time_input=True, horizon=T),
+        CostNetworkConfig(hidden=(), n_features=6, linear_skip=True, identity_init=False),
+    ],
+    ids=["plain", "time", "linear_skip"],
+)
+def test_affine_network_residual_is_one_matrix(config):
+    """Without hidden layers the residual ``A y(z) + b`` is computed as ``M z + m``; it must
+    equal the layer-by-layer product, values and parameter gradients alike."""
+    net = CostNetwork(config, dX, dU, jnp.float64)
+    params = net.init(jax.random.key(0))
+    params = params.replace(net=jax.tree.map(lambda a: a + 0.1, params.net))  # b, biases ≠ 0
+    norm = update_normaliser(params.norm, jax.random.normal(jax.random.key(1), (40, dX)) * 2 + 1)
+    params = params.replace(norm=norm)
+    xs = jax.random.normal(jax.random.key(2), (7, dX))
+    ts = jnp.arange(7)
+
+    def layered(net_params, x, t):
+        p = params.replace(net=net_params)
+        return p.net["A"] @ net.features(p, x, t) + p.net["b"]
+
+    def collapsed(net_params, x, t):
+        return net.state_residual(params.replace(net=net_params), x, t)
+
+    for f in (layered, collapsed):
+        assert jax.vmap(f, in_axes=(None, 0, 0))(params.net, xs, ts).shape == (7, 6)
+    ref = jax.vmap(layered, in_axes=(None, 0, 0))(params.net, xs, ts)
+    out = jax.vmap(collapsed, in_axes=(None, 0, 0))(params.net, xs, ts)
+    np.testing.assert_allclose(out, ref, rtol=1e-12, atol=1e-12)
+
+    def total(f):
+        return lambda p: jnp.sum(jax.vmap(f, in_axes=(None, 0, 0))(p, xs, ts) ** 2)
+
+    g_ref = jax.grad(total(layered))(params.net)
+    g_out = jax.grad(total(collapsed))(params.net)
+    for a, b in zip(jax.tree.leaves(g_out), jax.tree.leaves(g_ref), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+
+
+def test_affine_residual_map_needs_an_affine_network():
+    net = make_network()
+    with pytest.raises(ValueError, match="hidden layers"):
+        net.affine_residual_map(net.init(jax.random.key(0)))
+
+
 def test_identity_init_rejects_narrow_layers():
     net = CostNetwork(CostNetworkConfig(hidden=(4,), n_features=5), dX, dU, jnp.float64)
     with pytest.raises(ValueError, match="identity_init"):

@@ -238,13 +238,43 @@ class CostNetwork:
         std = jnp.maximum(jnp.sqrt(norm.var), self.config.std_floor)
         return (x - norm.mean) / std
 
-    def features(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
-        """``y(x, t)``: [F]."""
+    def network_input(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
+        """The feature network's input: the normalised state, with ``t / horizon`` appended when
+        ``time_input`` is on: [dIn]."""
         z = self.normalise(params, x)
         if self.config.time_input:
             tau = jnp.asarray(t, z.dtype) / self.config.horizon
             z = jnp.concatenate([z, tau[None]])
+        return z
+
+    def features(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
+        """``y(x, t)``: [F]."""
+        return self._apply_features(params, self.network_input(params, x, t))
+
+    def _apply_features(self, params: CostParams, z: Array) -> Array:
         return self._features.apply({"params": params.net["features"]}, z)
+
+    @property
+    def is_affine(self) -> bool:
+        """Whether ``y`` is affine in the network input (no hidden layers)."""
+        return not self.config.hidden
+
+    def affine_residual_map(self, params: CostParams) -> tuple[Array, Array]:
+        """``(M: [F, dIn], m: [F])`` with ``A y(z) + b = M z + m`` for an affine ``y``.
+
+        The Jacobian of the affine feature map at 0 is its weight matrix and its value there the
+        offset, so ``M = A ∂y/∂z`` and ``m = A y(0) + b`` hold exactly whatever the layer layout
+        (with or without ``linear_skip``). One ``[F, dIn]`` matrix replaces the ``[F, dIn]`` and
+        ``[F, F]`` products per state — for F = 32 and dIn = 4 about 9× less arithmetic on the
+        cost update's hot path.
+        """
+        if not self.is_affine:
+            raise ValueError(f"the feature network has hidden layers {self.config.hidden}")
+        z0 = jnp.zeros(self._input_dim(), params.net["A"].dtype)
+        y0 = self._apply_features(params, z0)
+        J = jax.jacfwd(lambda z: self._apply_features(params, z))(z0)
+        A = params.net["A"]
+        return A @ J, A @ y0 + params.net["b"]
 
     def action_weight(self, params: CostParams) -> Array:
         """``w_u`` (scalar); a constant when ``learn_action_weight`` is off."""
@@ -254,8 +284,13 @@ class CostNetwork:
         return jnp.exp(log_w)
 
     def state_residual(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
-        """``A y(x, t) + b``: [F]."""
-        return params.net["A"] @ self.features(params, x, t) + params.net["b"]
+        """``A y(x, t) + b``: [F] (as ``M z + m`` when ``y`` is affine; under ``vmap`` over
+        states ``M`` is formed once, since it does not depend on the state)."""
+        z = self.network_input(params, x, t)
+        if self.is_affine:
+            M, m = self.affine_residual_map(params)
+            return M @ z + m
+        return params.net["A"] @ self._apply_features(params, z) + params.net["b"]
 
     def residual(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
         """Residual ``r: [F + dU]`` with ``c = ‖r‖²``: ``[A y(x, t) + b; sqrt(w_u) u]``.
