@@ -12,6 +12,7 @@ from diffgcl.costs.buffer import (
     controller_log_densities,
     init_buffer,
     samples_per_controller,
+    stored_log_densities,
 )
 from diffgcl.types import make_controller
 
@@ -55,6 +56,27 @@ def test_ring_wraps_and_evicts_the_overwritten_controllers_samples():
     np.testing.assert_array_equal(samples_per_controller(buffer), [2, 3, 1])
     assert int(buffer.next_sample) == 5 and int(buffer.next_controller) == 2
     assert add._cache_size() <= 3  # one per batch size (and mask) seen in this module
+
+
+def test_density_table_equals_recomputation_through_wraps_and_evictions():
+    """buffer_add fills only the new column and rows of the [S, Kc] density table; after wraps,
+    uneven batches, masks and evictions it must equal recomputing every pair."""
+    buffer = init_buffer(7, 3, T, dX, dU, jnp.float64)
+    keys = jax.random.split(jax.random.key(3), 12)
+    for i, n in enumerate([2, 3, 1, 3, 2, 2, 3, 1, 2, 3, 2, 1]):
+        kx, ku, kc = jax.random.split(keys[i], 3)
+        X = jax.random.normal(kx, (n, T + 1, dX))
+        U = jax.random.normal(ku, (n, T, dU))
+        mask = jax.random.bernoulli(kc, 0.8, (n,))
+        ctrl = controller(0.3 * i - 1.0)
+        ctrl = ctrl.replace(K=ctrl.K * (1.0 + 0.2 * i))
+        buffer = add(buffer, make_controller(ctrl.K, ctrl.k, ctrl.cov), X, U, mask=mask)
+        ref = controller_log_densities(buffer, buffer.X, buffer.U)
+        table = stored_log_densities(buffer)
+        rows = np.asarray(buffer.valid)
+        assert rows.any()
+        np.testing.assert_allclose(table[rows], ref[rows], rtol=1e-12)
+        assert np.all(np.isneginf(table[:, ~np.asarray(buffer.controller_valid)]))
 
 
 def test_eviction_without_overwriting_invalidates():

@@ -73,6 +73,7 @@ from diffgcl.costs.buffer import (
     action_log_densities,
     controller_log_densities,
     samples_per_controller,
+    stored_log_densities,
 )
 from diffgcl.costs.network import CostNetwork, CostParams
 from diffgcl.types import Array, LinearGaussianController, PRNGKey
@@ -208,9 +209,9 @@ def fusion_weighted_samples(
     n_demos = float(min(config.demo_batch, N)) if config.demos_in_partition else 0.0
     log_pi, log_pi_demo = _mixture_log_weights(counts, jnp.asarray(n_demos), n_samples, config)
 
-    def log_proposal(X: Array, U: Array, own: Array | None) -> Array:
-        """Log proposal densities of trajectories [M] (``own``: each one's controller slot)."""
-        log_q_ctrl = controller_log_densities(buffer, X, U)  # [M, Kc]
+    def log_proposal(X: Array, U: Array, log_q_ctrl: Array, own: Array | None) -> Array:
+        """Log proposal densities of trajectories [M] given their densities under the stored
+        controllers ``log_q_ctrl: [M, Kc]`` (``own``: each one's controller slot)."""
         demo_ctrl = jax.tree.map(lambda a: a[None], demo_controller)
         log_q_demo = action_log_densities(demo_ctrl, X, U)[:, 0]  # [M]
         if not config.fusion:
@@ -220,8 +221,10 @@ def fusion_weighted_samples(
         terms = jnp.concatenate([log_pi + log_q_ctrl, (log_pi_demo + log_q_demo)[:, None]], 1)
         return jax.nn.logsumexp(terms, axis=1)
 
-    log_q_samples = log_proposal(buffer.X, buffer.U, buffer.source)
-    log_q_demos = log_proposal(demo_X, demo_U, None)
+    log_q_samples = log_proposal(buffer.X, buffer.U, stored_log_densities(buffer), buffer.source)
+    log_q_demos = log_proposal(
+        demo_X, demo_U, controller_log_densities(buffer, demo_X, demo_U), None
+    )
     samples = WeightedSamples(X=buffer.X, U=buffer.U, log_q=log_q_samples, valid=buffer.valid)
     demos = WeightedSamples(X=demo_X, U=demo_U, log_q=log_q_demos, valid=jnp.ones(N, bool))
     return samples, demos
