@@ -117,9 +117,10 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import enable_compilation_cache, set_cpu_devices
 
     args = build_parser().parse_args(argv)
+    set_cpu_devices()  # seed batches are sharded over the cores
     enable_compilation_cache()
     return int(args.func(args) or 0)
 

@@ -3,6 +3,10 @@
 Each distinct jitted program that differentiates through ``mjx.step`` costs 13–24 s to compile on
 a 2-core CPU; JAX's persistent compilation cache brings a later process down to well under a
 second, so every entry point turns it on.
+
+On a CPU, XLA runs one device's program on one core at a time for the latency-bound parts of a
+run; :func:`set_cpu_devices` splits the host into one XLA device per core so that a
+batch sharded over the devices (:mod:`diffgcl.sim.sharding`) keeps every core busy.
 """
 
 from __future__ import annotations
@@ -16,6 +20,26 @@ import jax
 def cache_root() -> Path:
     """Root of diffgcl's on-disk caches: ``$DIFFGCL_CACHE`` or ``~/.cache/diffgcl``."""
     return Path(os.environ.get("DIFFGCL_CACHE", Path.home() / ".cache" / "diffgcl"))
+
+
+HOST_DEVICE_FLAG = "--xla_force_host_platform_device_count"
+
+
+def set_cpu_devices(n: int | None = None) -> bool:
+    """Split the host CPU into ``n`` XLA devices (default: one per core, ``os.cpu_count()``).
+
+    Works only before JAX's backends start (the first computation or ``jax.devices()``); leaves a
+    device count already given in ``XLA_FLAGS`` alone. Returns whether the setting took effect.
+    Accelerators are unaffected: the flag only splits the host platform.
+    """
+    from jax._src import xla_bridge
+
+    flags = os.environ.get("XLA_FLAGS", "")
+    if HOST_DEVICE_FLAG in flags or xla_bridge.backends_are_initialized():
+        return False
+    n = (os.cpu_count() or 1) if n is None else n
+    os.environ["XLA_FLAGS"] = f"{flags} {HOST_DEVICE_FLAG}={n}".strip()
+    return True
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:

@@ -12,11 +12,14 @@ transitions (:func:`diffgcl.algorithms.rgcl.arm_coverage`), compile and run time
 Timing (v2, or the preset's only schedule): ``seconds_per_run_after_compile`` is one unbatched
 run of ``jit(train)`` after compilation (best of 2); ``sweep_speedup`` is the time of the same
 seeds run one by one through that compiled single-run function divided by the time of the
-vmapped batch (also after compilation). ``compile_seconds`` is the lowering + compilation of the
+vmapped batch (also after compilation), the batch sharded over the CPU's cores as one XLA device
+per core (``--devices 1``: one device; the single runs are latency-bound and gain nothing from a
+second core). ``compile_seconds`` is the lowering + compilation of the
 vmapped batch program of that schedule (the persistent compilation cache is on, so a second
 process reports much less; ``compile_seconds_*`` list every program).
 
     python experiments/arm_rgcl.py --preset default --seeds 32 --json out.json [--fast] [--out DIR]
+        [--devices N]
 """
 
 from __future__ import annotations
@@ -34,6 +37,8 @@ import numpy as np
 from diffgcl.algorithms.presets import default, paper_v1, paper_v2
 from diffgcl.algorithms.rgcl import final_rollouts, make_train
 from diffgcl.algorithms.rgcl_cli import evaluate_cost, load_demos
+from diffgcl.runtime import set_cpu_devices
+from diffgcl.sim.sharding import shard_batch_if_even
 
 SCHEDULES = {
     "default": {"v1": lambda: default("v1"), "v2": lambda: default("v2")},
@@ -50,12 +55,12 @@ def run_schedule(config, env, demos, seeds, *, chunk: int = 32) -> dict:
     size = min(chunk, len(seeds))
     batch = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None)))
     t0 = time.perf_counter()
-    compiled = batch.lower(keys[:size], demos).compile()
+    compiled = batch.lower(shard_batch_if_even(keys[:size]), demos).compile()
     compile_seconds = time.perf_counter() - t0
     states, metrics = [], []
     t0 = time.perf_counter()
     for i in range(0, len(seeds), size):
-        k = keys[i : i + size]
+        k = shard_batch_if_even(keys[i : i + size])
         fn = compiled if k.shape[0] == size else batch
         state, m = jax.block_until_ready(fn(k, demos))
         states.append(jax.tree.map(np.asarray, state))
@@ -111,7 +116,15 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None, help="run folders with plots")
     parser.add_argument("--x64", action="store_true")
+    parser.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="XLA CPU devices the seed batch is sharded over (default: one per core)",
+    )
     args = parser.parse_args(argv)
+    if not set_cpu_devices(args.devices) and args.devices is not None:
+        raise SystemExit("--devices: XLA_FLAGS already sets the device count, or JAX started")
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     from diffgcl.envs import make_env
@@ -127,6 +140,7 @@ def main(argv=None) -> int:
     summary: dict = {"preset": args.preset, "seeds": seeds, "fast": args.fast}
     summary["dtype"] = str(jnp.zeros(()).dtype)
     summary["device"] = str(jax.devices()[0])
+    summary["devices"] = len(jax.devices())
     for schedule, make_config in schedules.items():
         config = make_config()
         if args.fast:

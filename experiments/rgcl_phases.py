@@ -2,7 +2,8 @@
 sweep speed-up).
 
 For the ``default`` v2 preset on the arm, each phase is timed as one jitted single-seed call and
-as one jitted ``vmap`` over N seeds (best of 5, after compilation); the reference is the single
+as one jitted ``vmap`` over N seeds sharded over the CPU's cores as one XLA device per core
+(``--devices 1``: one device) (best of 5, after compilation); the reference is the single
 call looped N times, as in ``experiments/arm_rgcl.py``'s sweep speed-up. GPS phases
 (:func:`diffgcl.algorithms.gps.make_gps_phases`, on the expert cost): ``outer`` (sampling and
 autodiff linearisation), ``expand`` (cost expansion), ``adapt_step`` (Laplace estimates),
@@ -10,7 +11,7 @@ autodiff linearisation), ``expand`` (cost expansion), ``adapt_step`` (Laplace es
 (``RGCL.run``) with the cost update switched off (``gcl.n_steps=0``) and on give the cost
 update's share by difference.
 
-    python experiments/rgcl_phases.py [--seeds 32] [--json PATH]
+    python experiments/rgcl_phases.py [--seeds 32] [--json PATH] [--devices N]
 """
 
 from __future__ import annotations
@@ -52,7 +53,17 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=32)
     parser.add_argument("--json", type=Path, default=None)
+    parser.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="XLA CPU devices the seed batch is sharded over (default: one per core)",
+    )
     args = parser.parse_args(argv)
+    from diffgcl.runtime import set_cpu_devices
+
+    if not set_cpu_devices(args.devices) and args.devices is not None:
+        raise SystemExit("--devices: XLA_FLAGS already sets the device count, or JAX started")
 
     from diffgcl.algorithms.gps import make_gps_phases
     from diffgcl.algorithms.presets import default, with_overrides
@@ -60,11 +71,13 @@ def main(argv=None) -> int:
     from diffgcl.algorithms.rgcl_cli import load_demos
     from diffgcl.envs import make_env
     from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.sim.sharding import shard_batch_if_even
 
     enable_compilation_cache()
     env = make_env("arm")
     n = args.seeds
     keys = jax.random.split(jax.random.PRNGKey(0), n)
+    keys_b = shard_batch_if_even(keys)  # the batched calls' seeds, split over the devices
     rows: list = []
 
     # GPS phases on the expert cost (full-Hessian expansion; the learned cost uses Gauss–Newton).
@@ -73,14 +86,14 @@ def main(argv=None) -> int:
         dataclasses.replace(config.gps, gauss_newton=False), env, true_cost=env.expert_cost
     )
     vm = lambda f: jax.jit(jax.vmap(f))
-    state1, states = jax.jit(phases.init)(keys[0]), vm(phases.init)(keys)
+    state1, states = jax.jit(phases.init)(keys[0]), vm(phases.init)(keys_b)
     outer1, outerb = jax.jit(phases.outer), vm(phases.outer)
-    s1, sb = outer1(state1, keys[0]), outerb(states, keys)
+    s1, sb = outer1(state1, keys[0]), outerb(states, keys_b)
     expand = lambda s: phases.expand(env.expert_cost, s)
     q1, qb = jax.jit(expand)(s1), vm(expand)(sb)
     m1 = jax.jit(phases.adapt_step)(state1, s1, q1)
     mb = vm(phases.adapt_step)(states, sb, qb)
-    outer_args = ((state1, keys[0]), (states, keys))
+    outer_args = ((state1, keys[0]), (states, keys_b))
     compare("GPS outer (sample + linearise)", outer1, outer_args[0], outerb, outer_args[1], n, rows)
     compare("GPS expand (expert cost)", jax.jit(expand), (s1,), vm(expand), (sb,), n, rows)
     compare(
@@ -109,12 +122,12 @@ def main(argv=None) -> int:
         rgcl = make_train(with_overrides(config, overrides), env)
         run = lambda s, k, rgcl=rgcl: rgcl.run(s, k, demos, 1)
         init1 = jax.jit(rgcl.init)(keys[0], demos)
-        initb = jax.jit(jax.vmap(rgcl.init, in_axes=(0, None)))(keys, demos)
+        initb = jax.jit(jax.vmap(rgcl.init, in_axes=(0, None)))(keys_b, demos)
         # A few iterations first, so that the sample buffer holds several controllers.
         warm = lambda s, k, rgcl=rgcl: rgcl.run(s, k, demos, 5)[0]
         init1 = jax.jit(warm)(init1, keys[0])
-        initb = jax.jit(jax.vmap(warm))(initb, keys)
-        compare(label, jax.jit(run), (init1, keys[1]), vm(run), (initb, keys), n, rows)
+        initb = jax.jit(jax.vmap(warm))(initb, keys_b)
+        compare(label, jax.jit(run), (init1, keys[1]), vm(run), (initb, keys_b), n, rows)
     update = {k: rows[-1][k] - rows[-2][k] for k in ("single_ms", "loop_ms", "vmapped_ms")}
     update["speedup"] = update["loop_ms"] / update["vmapped_ms"]
     print(
@@ -125,7 +138,12 @@ def main(argv=None) -> int:
     rows.append({"phase": "cost update (difference)", **update})
     if args.json is not None:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        summary = {"seeds": n, "device": str(jax.devices()[0]), "phases": rows}
+        summary = {
+            "seeds": n,
+            "device": str(jax.devices()[0]),
+            "devices": len(jax.devices()),
+            "phases": rows,
+        }
         args.json.write_text(json.dumps(summary, indent=1))
         print(f"summary in {args.json}")
     return 0

@@ -33,15 +33,112 @@ SCRIPT = textwrap.dedent(
         assert "not divisible by 2 devices" in str(err)
     else:
         raise AssertionError("odd batch accepted")
+    from diffgcl.sim.sharding import shard_batch_if_even
+    odd = jnp.zeros(3)
+    assert shard_batch_if_even(odd) is odd
+    even = shard_batch_if_even((jnp.zeros(4), jnp.zeros((4, 2)), jnp.float32(1.0)))
+    assert all(len(a.sharding.device_set) == 2 for a in even), [a.sharding for a in even]
     print("OK")
     """
 )
+
+CORES_SCRIPT = textwrap.dedent(
+    """
+    import os
+    from diffgcl.runtime import set_cpu_devices
+    assert set_cpu_devices(3)
+    assert not set_cpu_devices(5)  # already set
+    import jax
+    assert len(jax.devices()) == 3, jax.devices()
+    print("OK", os.environ["XLA_FLAGS"])
+    """
+)
+
+
+def test_one_device_per_core_before_jax_starts():
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    out = subprocess.run(
+        [sys.executable, "-c", CORES_SCRIPT], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "OK --xla_force_host_platform_device_count=3" in out.stdout
 
 
 def test_sharded_sampling_equals_single_device():
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     out = subprocess.run(
         [sys.executable, "-c", SCRIPT], env=env, capture_output=True, text=True, timeout=600
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert "OK" in out.stdout
+
+
+RUNNER_SCRIPT = textwrap.dedent(
+    """
+    import sys, tempfile
+    from pathlib import Path
+    import jax, jax.numpy as jnp, numpy as np
+    jax.config.update("jax_enable_x64", True)
+    from diffgcl.runtime import enable_compilation_cache
+    enable_compilation_cache()
+    sys.path.insert(0, "tests")
+    from test_rgcl import Slider, tiny_config
+    from diffgcl.algorithms.expert import make_demo_set, sample_expert
+    from diffgcl.algorithms.gps import GPSConfig, make_gps
+    from diffgcl.algorithms.rgcl import demo_batch, make_train
+    from diffgcl.algorithms import runner
+    from diffgcl.algorithms.runner import SimulatedCrash, train_seeds
+    assert len(jax.devices()) == 2, jax.devices()
+    placed = []  # device counts of what the runner shards
+    def spy(tree, place=runner.shard_batch_if_even):
+        out = place(tree)
+        placed.append(min(len(a.sharding.device_set) for a in jax.tree.leaves(out)))
+        return out
+    runner.shard_batch_if_even = spy
+    env = Slider()
+    gps = make_gps(GPSConfig(iterations=8, init_var=1.0, kl_step=1.0), env, env.expert_cost)
+    state, _ = jax.jit(gps.train)(jax.random.PRNGKey(0))
+    traj, cond = sample_expert(
+        env, state.controller, env.initial_states(), jax.random.PRNGKey(1), 8, smooth_sigma=None
+    )
+    demos = demo_batch(make_demo_set(env, traj, np.asarray(cond), cost=env.expert_cost), 1)
+    config = tiny_config("v2", iterations=3)
+    seeds = [0, 1]
+    out = Path(tempfile.mkdtemp()) / "run"
+    try:
+        train_seeds(config, env, demos, seeds, out=out, chunk=1, checkpoint_every=1, crash_after=2)
+    except SimulatedCrash:
+        pass
+    else:
+        raise AssertionError("no crash")
+    resumed = train_seeds(config, env, demos, seeds, out=out, chunk=1, resume=True, progress=False)
+    assert resumed.resumed_from == 2
+    assert placed and min(placed) == 2, placed
+    # Reference: the same seeds as one unsharded jit(vmap(train)) on the default device.
+    rgcl = make_train(config, env)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+    hps = jax.tree.map(lambda a: jnp.stack([a, a]), rgcl.default_hparams())
+    ref, _ = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None, 0)))(keys, demos, hps)
+    assert len(ref.gps.controller.K.sharding.device_set) == 1
+    for a, b in zip(jax.tree.leaves(resumed.state), jax.tree.leaves(ref), strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-9, atol=1e-9)
+    print("OK")
+    """
+)
+
+
+def test_runner_shards_seeds_over_devices_and_resumes():
+    """train_seeds splits the seed batch over 2 CPU devices; a crash and resume on that layout
+    gives the unsharded single-device result (float64)."""
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    out = subprocess.run(
+        [sys.executable, "-c", RUNNER_SCRIPT],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=900,
+        cwd=root,
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "OK" in out.stdout

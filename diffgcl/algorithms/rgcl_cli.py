@@ -197,6 +197,7 @@ def sweep_command(args) -> int:
 
     from diffgcl.algorithms.rgcl import RGCLHyperparams, final_rollouts, make_train
     from diffgcl.envs import make_env
+    from diffgcl.sim.sharding import shard_batch_if_even
 
     _setup(args)
     env = make_env("arm")
@@ -222,7 +223,8 @@ def sweep_command(args) -> int:
     t0 = time.perf_counter()
     for i in range(0, len(runs), args.chunk):
         sl = slice(i, i + args.chunk)
-        state, _ = train(keys[sl], demos, jax.tree.map(lambda a, sl=sl: a[sl], hp))
+        batch = shard_batch_if_even((keys[sl], jax.tree.map(lambda a, sl=sl: a[sl], hp)))
+        state, _ = train(batch[0], demos, batch[1])
         X = rollout(state.gps.controller)
         success.append(np.asarray(jax.vmap(jax.vmap(env.success))(X)).all(-1))
     success = np.concatenate(success)

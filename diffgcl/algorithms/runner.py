@@ -39,6 +39,7 @@ from diffgcl.algorithms.rgcl import (
     RGCLState,
     make_train,
 )
+from diffgcl.sim.sharding import shard_batch_if_even
 
 CHECKPOINT = "checkpoint.npz"
 
@@ -155,6 +156,8 @@ def train_seeds(
         hparams = jax.tree.map(lambda a: jnp.broadcast_to(a, (S,)), hp)
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
     key_init, key_loop = jax.vmap(rgcl.split_key)(keys)
+    # Seeds split over all devices (the CPU's cores with runtime.set_cpu_devices).
+    key_init, key_loop, hparams = shard_batch_if_even((key_init, key_loop, hparams))
     total = config.iterations
     chunk = max(1, min(chunk, total))
 
@@ -204,6 +207,9 @@ def train_seeds(
     try:
         while done < total:
             n = min(chunk, total - done)
+            # One layout for every call of a compiled chunk: GSPMD may return some leaves of the
+            # state replicated, and a program only takes the shardings it was compiled for.
+            state = shard_batch_if_even(state)
             program = chunk_fn(n)
             t0 = time.perf_counter()
             new_state, m = jax.block_until_ready(program(state, key_loop, demos))

@@ -42,6 +42,17 @@ def shard_batch(tree, mesh: Mesh | None = None):
     return jax.tree.map(place, tree)
 
 
+def shard_batch_if_even(tree, mesh: Mesh | None = None):
+    """:func:`shard_batch` when every leading axis divides evenly over the devices (and there is
+    more than one), else ``tree`` unchanged (it then runs on the default device)."""
+    mesh = batch_mesh() if mesh is None else mesh
+    n = mesh.devices.size
+    sizes = {np.shape(a)[0] for a in jax.tree.leaves(tree) if np.ndim(a) > 0}
+    if n == 1 or not sizes or any(size % n for size in sizes):
+        return tree
+    return shard_batch(tree, mesh)
+
+
 def replicate(tree, mesh: Mesh | None = None):
     """Place every array of ``tree`` whole on every device of the mesh."""
     mesh = batch_mesh() if mesh is None else mesh
