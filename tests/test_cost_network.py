@@ -49,8 +49,8 @@ def test_identity_features_without_hidden_layers():
     ids=["plain", "time", "linear_skip"],
 )
 def test_affine_network_residual_is_one_matrix(config):
-    """Without hidden layers the residual ``A y(z) + b`` is computed as ``M z + m``; it must
-    equal the layer-by-layer product, values and parameter gradients alike."""
+    """Without hidden layers the residual ``A y(z) + b`` is computed as ``M z + m`` and the state
+    cost in Gram form; both must equal the layer-by-layer products, values and gradients."""
     net = CostNetwork(config, dX, dU, jnp.float64)
     params = net.init(jax.random.key(0))
     params = params.replace(net=jax.tree.map(lambda a: a + 0.1, params.net))  # b, biases ≠ 0
@@ -79,6 +79,19 @@ def test_affine_network_residual_is_one_matrix(config):
     g_out = jax.grad(total(collapsed))(params.net)
     for a, b in zip(jax.tree.leaves(g_out), jax.tree.leaves(g_ref), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+
+    # The state cost in Gram form is the squared layer-by-layer residual, gradients included.
+    def gram(net_params):
+        p = params.replace(net=net_params)
+        return jnp.sum(jax.vmap(net.state_cost, in_axes=(None, 0, 0))(p, xs, ts))
+
+    np.testing.assert_allclose(gram(params.net), total(layered)(params.net), rtol=1e-12)
+    g_gram = jax.grad(gram)(params.net)
+    for a, b in zip(jax.tree.leaves(g_gram), jax.tree.leaves(g_ref), strict=True):
+        np.testing.assert_allclose(a, b, rtol=1e-10, atol=1e-12)
+    # ... and its state gradient (the goal regulariser's) that of the residual form.
+    s_ref = jax.grad(lambda x: jnp.sum(layered(params.net, x, 3) ** 2))(xs[0])
+    np.testing.assert_allclose(jax.grad(net.state_cost, 1)(params, xs[0], 3), s_ref, rtol=1e-10)
 
 
 def test_affine_residual_map_needs_an_affine_network():

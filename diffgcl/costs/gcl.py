@@ -166,7 +166,7 @@ def goal_penalty(network: CostNetwork, params: CostParams, X: Array) -> Array:
     T = X.shape[0] - 1
 
     def s(x):
-        return jnp.sum(network.state_residual(params, x, T) ** 2)
+        return network.state_cost(params, x, T)
 
     norm = jax.lax.stop_gradient(params.norm)
     std = jnp.maximum(jnp.sqrt(norm.var), network.config.std_floor)
@@ -235,8 +235,7 @@ def _state_and_action_costs(
 ) -> tuple[Array, Array]:
     """State costs ``s: [T+1]`` and the trajectory cost (scalar) of one trajectory."""
     T = U.shape[0]
-    r = jax.vmap(network.state_residual, in_axes=(None, 0, 0))(params, X, jnp.arange(T + 1))
-    s = jnp.sum(r**2, axis=-1)
+    s = jax.vmap(network.state_cost, in_axes=(None, 0, 0))(params, X, jnp.arange(T + 1))
     return s, s.sum() + network.action_weight(params) * jnp.sum(U**2)
 
 
