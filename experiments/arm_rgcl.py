@@ -39,7 +39,7 @@ from diffgcl.algorithms.presets import default, paper_v1, paper_v2
 from diffgcl.algorithms.rgcl import final_rollouts, make_train
 from diffgcl.algorithms.rgcl_cli import evaluate_cost, load_demos
 from diffgcl.runtime import set_cpu_devices
-from diffgcl.sim.sharding import shard_batch_if_even
+from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
 TIMING_REPEATS = 2  # the sweep speed-up compares best-of-2 times of the batch and the loop
 
@@ -56,7 +56,7 @@ def run_schedule(config, env, demos, seeds, *, chunk: int = 32, timing_repeats: 
     rgcl = make_train(config, env)
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
     size = min(chunk, len(seeds))
-    batch = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None)))
+    batch = jax.jit(vmap_over_devices(rgcl.train, in_axes=(0, None)))
     t0 = time.perf_counter()
     compiled = batch.lower(shard_batch_if_even(keys[:size]), demos).compile()
     compile_seconds = time.perf_counter() - t0

@@ -71,7 +71,7 @@ def main(argv=None) -> int:
     from diffgcl.algorithms.rgcl_cli import load_demos
     from diffgcl.envs import make_env
     from diffgcl.runtime import enable_compilation_cache
-    from diffgcl.sim.sharding import shard_batch_if_even
+    from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
     enable_compilation_cache()
     env = make_env("arm")
@@ -85,7 +85,7 @@ def main(argv=None) -> int:
     phases = make_gps_phases(
         dataclasses.replace(config.gps, gauss_newton=False), env, true_cost=env.expert_cost
     )
-    vm = lambda f: jax.jit(jax.vmap(f))
+    vm = lambda f: jax.jit(vmap_over_devices(f))
     state1, states = jax.jit(phases.init)(keys[0]), vm(phases.init)(keys_b)
     outer1, outerb = jax.jit(phases.outer), vm(phases.outer)
     s1, sb = outer1(state1, keys[0]), outerb(states, keys_b)
@@ -122,11 +122,11 @@ def main(argv=None) -> int:
         rgcl = make_train(with_overrides(config, overrides), env)
         run = lambda s, k, rgcl=rgcl: rgcl.run(s, k, demos, 1)
         init1 = jax.jit(rgcl.init)(keys[0], demos)
-        initb = jax.jit(jax.vmap(rgcl.init, in_axes=(0, None)))(keys_b, demos)
+        initb = jax.jit(vmap_over_devices(rgcl.init, in_axes=(0, None)))(keys_b, demos)
         # A few iterations first, so that the sample buffer holds several controllers.
         warm = lambda s, k, rgcl=rgcl: rgcl.run(s, k, demos, 5)[0]
         init1 = jax.jit(warm)(init1, keys[0])
-        initb = jax.jit(jax.vmap(warm))(initb, keys_b)
+        initb = jax.jit(vmap_over_devices(warm))(initb, keys_b)
         compare(label, jax.jit(run), (init1, keys[1]), vm(run), (initb, keys_b), n, rows)
     update = {k: rows[-1][k] - rows[-2][k] for k in ("single_ms", "loop_ms", "vmapped_ms")}
     update["speedup"] = update["loop_ms"] / update["vmapped_ms"]

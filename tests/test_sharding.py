@@ -38,6 +38,21 @@ SCRIPT = textwrap.dedent(
     assert shard_batch_if_even(odd) is odd
     even = shard_batch_if_even((jnp.zeros(4), jnp.zeros((4, 2)), jnp.float32(1.0)))
     assert all(len(a.sharding.device_set) == 2 for a in even), [a.sharding for a in even]
+    # shard_map over the devices: the plain vmap's result, each device holding its half.
+    from diffgcl.sim.sharding import vmap_over_devices
+    g = lambda k, c: sample_controller(env, ctrl, x0 + c, k, 2, smooth_sigma=2.0).X
+    shift = jnp.ones(4)
+    out = jax.jit(vmap_over_devices(g, in_axes=(0, None)))(keys, shift)
+    assert len(out.sharding.device_set) == 2, out.sharding
+    np.testing.assert_allclose(np.asarray(out), np.asarray(jax.vmap(g, (0, None))(keys, shift)))
+    odd = jax.jit(vmap_over_devices(g, in_axes=(0, None)))(keys[:3], shift)  # falls back
+    np.testing.assert_allclose(np.asarray(odd), np.asarray(out[:3]), atol=1e-12)
+    try:
+        vmap_over_devices(g, in_axes=(1, None))(keys, shift)
+    except ValueError as err:
+        assert "in_axes must be 0 or None" in str(err)
+    else:
+        raise AssertionError("in_axes=1 accepted")
     print("OK")
     """
 )

@@ -197,7 +197,7 @@ def sweep_command(args) -> int:
 
     from diffgcl.algorithms.rgcl import RGCLHyperparams, final_rollouts, make_train
     from diffgcl.envs import make_env
-    from diffgcl.sim.sharding import shard_batch_if_even
+    from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
     _setup(args)
     env = make_env("arm")
@@ -217,7 +217,7 @@ def sweep_command(args) -> int:
     dtype = jnp.asarray(env.initial_states()).dtype
     keys = jnp.stack([jax.random.PRNGKey(s) for _, s in runs])
     hp = RGCLHyperparams(*(jnp.asarray([p[i] for p, _ in runs], dtype) for i in range(3)))
-    train = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None, 0)))
+    train = jax.jit(vmap_over_devices(rgcl.train, in_axes=(0, None, 0)))
     rollout = jax.jit(jax.vmap(lambda c: final_rollouts(env, c)))
     success = []
     t0 = time.perf_counter()

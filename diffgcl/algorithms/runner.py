@@ -39,7 +39,7 @@ from diffgcl.algorithms.rgcl import (
     RGCLState,
     make_train,
 )
-from diffgcl.sim.sharding import shard_batch_if_even
+from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
 CHECKPOINT = "checkpoint.npz"
 
@@ -161,14 +161,15 @@ def train_seeds(
     total = config.iterations
     chunk = max(1, min(chunk, total))
 
-    init_fn = jax.jit(jax.vmap(rgcl.init, in_axes=(0, None, 0)))
+    init_fn = jax.jit(vmap_over_devices(rgcl.init, in_axes=(0, None, 0)))
     programs: dict[int, object] = {}
     compile_seconds = 0.0
 
     def chunk_fn(n: int):
         nonlocal compile_seconds
         if n not in programs:
-            f = jax.jit(jax.vmap(lambda s, k, d: rgcl.run(s, k, d, n), in_axes=(0, 0, None)))
+            run_n = lambda s, k, d: rgcl.run(s, k, d, n)  # noqa: E731
+            f = jax.jit(vmap_over_devices(run_n, in_axes=(0, 0, None)))
             t0 = time.perf_counter()
             programs[n] = f.lower(state, key_loop, demos).compile()
             compile_seconds += time.perf_counter() - t0
