@@ -4,9 +4,9 @@ Each distinct jitted program that differentiates through ``mjx.step`` costs 13â€
 a 2-core CPU; JAX's persistent compilation cache brings a later process down to well under a
 second, so every entry point turns it on.
 
-On a CPU, XLA runs one device's program on one core at a time for the latency-bound parts of a
-run; :func:`set_cpu_devices` splits the host into one XLA device per core so that a
-batch sharded over the devices (:mod:`diffgcl.sim.sharding`) keeps every core busy.
+On a CPU, one XLA device runs a batched program mostly on one core; :func:`set_cpu_devices`
+splits the host into one XLA device per core so that a batch split over the devices
+(:func:`diffgcl.sim.sharding.vmap_over_devices`) keeps every core busy.
 """
 
 from __future__ import annotations
@@ -32,14 +32,35 @@ def set_cpu_devices(n: int | None = None) -> bool:
     device count already given in ``XLA_FLAGS`` alone. Returns whether the setting took effect.
     Accelerators are unaffected: the flag only splits the host platform.
     """
-    from jax._src import xla_bridge
+    try:  # private API: if it moves, assume JAX has not started (the flag is then simply unused)
+        from jax._src import xla_bridge
 
+        started = xla_bridge.backends_are_initialized()
+    except (ImportError, AttributeError):
+        started = False
     flags = os.environ.get("XLA_FLAGS", "")
-    if HOST_DEVICE_FLAG in flags or xla_bridge.backends_are_initialized():
+    if HOST_DEVICE_FLAG in flags or started:
         return False
     n = (os.cpu_count() or 1) if n is None else n
     os.environ["XLA_FLAGS"] = f"{flags} {HOST_DEVICE_FLAG}={n}".strip()
     return True
+
+
+def add_devices_option(parser) -> None:
+    """``--devices N`` on an argparse parser (see :func:`apply_devices_option`)."""
+    parser.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="XLA CPU devices the seed batch is sharded over (default: one per core)",
+    )
+
+
+def apply_devices_option(args) -> None:
+    """:func:`set_cpu_devices` with ``args.devices``; an explicit count that cannot take effect
+    (``XLA_FLAGS`` sets one, or JAX has started) is an error rather than silently ignored."""
+    if not set_cpu_devices(args.devices) and args.devices is not None:
+        raise SystemExit("--devices: XLA_FLAGS already sets the device count, or JAX started")
 
 
 def enable_compilation_cache(path: str | os.PathLike | None = None) -> Path:

@@ -38,7 +38,7 @@ import numpy as np
 from diffgcl.algorithms.presets import default, paper_v1, paper_v2
 from diffgcl.algorithms.rgcl import final_rollouts, make_train
 from diffgcl.algorithms.rgcl_cli import evaluate_cost, load_demos
-from diffgcl.runtime import set_cpu_devices
+from diffgcl.runtime import add_devices_option, apply_devices_option
 from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
 TIMING_REPEATS = 2  # the sweep speed-up compares best-of-2 times of the batch and the loop
@@ -128,15 +128,9 @@ def main(argv=None) -> int:
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None, help="run folders with plots")
     parser.add_argument("--x64", action="store_true")
-    parser.add_argument(
-        "--devices",
-        type=int,
-        default=None,
-        help="XLA CPU devices the seed batch is sharded over (default: one per core)",
-    )
+    add_devices_option(parser)
     args = parser.parse_args(argv)
-    if not set_cpu_devices(args.devices) and args.devices is not None:
-        raise SystemExit("--devices: XLA_FLAGS already sets the device count, or JAX started")
+    apply_devices_option(args)
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     from diffgcl.envs import make_env

@@ -25,6 +25,8 @@ from pathlib import Path
 
 import jax
 
+from diffgcl.runtime import add_devices_option, apply_devices_option
+
 
 def best_time(fn, *args, repeats: int = 5) -> float:
     jax.block_until_ready(fn(*args))
@@ -53,17 +55,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, default=32)
     parser.add_argument("--json", type=Path, default=None)
-    parser.add_argument(
-        "--devices",
-        type=int,
-        default=None,
-        help="XLA CPU devices the seed batch is sharded over (default: one per core)",
-    )
+    add_devices_option(parser)
     args = parser.parse_args(argv)
-    from diffgcl.runtime import set_cpu_devices
-
-    if not set_cpu_devices(args.devices) and args.devices is not None:
-        raise SystemExit("--devices: XLA_FLAGS already sets the device count, or JAX started")
+    apply_devices_option(args)
 
     from diffgcl.algorithms.gps import make_gps_phases
     from diffgcl.algorithms.presets import default, with_overrides

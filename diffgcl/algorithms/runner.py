@@ -208,8 +208,8 @@ def train_seeds(
     try:
         while done < total:
             n = min(chunk, total - done)
-            # One layout for every call of a compiled chunk: GSPMD may return some leaves of the
-            # state replicated, and a program only takes the shardings it was compiled for.
+            # The compiled chunk takes the batch split over the devices; a state loaded from a
+            # checkpoint comes back on the default device (a no-op when already in place).
             state = shard_batch_if_even(state)
             program = chunk_fn(n)
             t0 = time.perf_counter()
