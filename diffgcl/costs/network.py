@@ -307,11 +307,11 @@ class CostNetwork:
         not to ``s``: about ``1e-7 · (zᵀGz + c)`` in float32, far below the cost differences
         that the GCL objective weighs.
         """
-        z = self.network_input(params, x, t)
         if self.is_affine:
+            z = self.network_input(params, x, t)
             G, g, c = self.affine_state_quadratic(params)
             return z @ (G @ z) + 2.0 * (g @ z) + c
-        r = params.net["A"] @ self._apply_features(params, z) + params.net["b"]
+        r = self.state_residual(params, x, t)
         return r @ r
 
     def residual(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
