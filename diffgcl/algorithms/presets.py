@@ -91,10 +91,10 @@ def default(schedule: str = "v2") -> RGCLConfig:
       samples, then Adam at 1e-3 per update: 20 steps (v1), 40 steps (v2); a strict monotonic
       regulariser on the demos (slack 0, weight 10). Without the monotonic term, v2 23/32 (59 %)
       (goal weight 0); 40 Adam steps per update for v1: 32/32 (78 %) (a: 30/32 (66 %)).
-    * the local-constant-rate regulariser at 0.03 (v2) and 0.01 (v1), was 1e-3. Every rGCL
-      controller succeeds from iteration 2 on; the failures come later, when GPS follows the
-      learned cost to its own optimum, which overshoots joint 1 by 0.2–0.3 rad (the demos: 0.17)
-      and returns too late. A stronger LCR term moved the tail: v2 with 40 steps and 7 frozen
+    * the local-constant-rate regulariser at 0.03 (v2) and 0.01 (v1), was 1e-3. With 1e-3 every
+      rGCL controller succeeded at iteration 2 (v2, seeds 0–31); the failures came later, as GPS
+      followed the learned cost to its own optimum, which overshot joint 1 by 0.2–0.3 rad (the
+      demos: 0.17) and returned too late; re-optimisation failed as often. A stronger LCR term moved the tail: v2 with 40 steps and 7 frozen
       iterations, seeds 32–95 on 2 devices: LCR 1e-3 61/64 (95 %), 1e-2 64/64 (100 %), 3e-2
       64/64 (100 %); without the longer updates and freeze (LCR 1e-2) 61/64 (97 %). The chosen
       v2 (3e-2), seeds 0–31 and 32–95 on 1 and on 2 devices: 96/96 (100 %) on both, the closest
