@@ -91,16 +91,16 @@ def default(schedule: str = "v2") -> RGCLConfig:
       samples, then Adam at 1e-3 per update: 20 steps (v1), 40 steps (v2); a strict monotonic
       regulariser on the demos (slack 0, weight 10). Without the monotonic term, v2 23/32 (59 %)
       (goal weight 0); 40 Adam steps per update for v1: 32/32 (78 %) (a: 30/32 (66 %)).
-    * the local-constant-rate regulariser at 0.03 (v2) and 0.01 (v1), was 1e-3. With 1e-3 every
-      rGCL controller succeeded at iteration 2 (v2, seeds 0–31); the failures came later, as GPS
-      followed the learned cost to its own optimum, which overshot joint 1 by 0.2–0.3 rad (the
-      demos: 0.17) and returned too late; re-optimisation failed as often. A stronger LCR term moved the tail: v2 with 40 steps and 7 frozen
-      iterations, seeds 32–95 on 2 devices: LCR 1e-3 61/64 (95 %), 1e-2 64/64 (100 %), 3e-2
-      64/64 (100 %); without the longer updates and freeze (LCR 1e-2) 61/64 (97 %). The chosen
-      v2 (3e-2), seeds 0–31 and 32–95 on 1 and on 2 devices: 96/96 (100 %) on both, the closest
-      seed 0.001 rad inside the box over the last 10 steps (1e-2: 94/96 and 95/96). v1 (2 devices,
-      seeds 0–31 / 32–95): 1e-3 32/32 (91 %) / 64/64 (97 %); 1e-2 32/32 (94 %) / 64/64 (98 %);
-      3e-2 32/32 (88 %).
+    * the local-constant-rate regulariser at 0.03 (v2) and 0.01 (v1), was 1e-3. With 1e-3 every rGCL
+      controller succeeded at iteration 2 (v2, seeds 0–31); the failures came later, as GPS followed
+      the learned cost to its own optimum, which overshot joint 1 by 0.2–0.3 rad (the demos: 0.17)
+      and returned too late; re-optimisation failed as often. A stronger LCR term moved the tail: v2
+      with 40 steps and 7 frozen iterations, seeds 32–95 on 2 devices: LCR 1e-3 61/64 (95 %), 1e-2
+      64/64 (100 %), 3e-2 64/64 (100 %); without the longer updates and freeze (LCR 1e-2) 61/64 (97
+      %). The chosen v2 (3e-2), seeds 0–31 and 32–95 on 1 and on 2 devices: 96/96 (100 %) on both,
+      the closest seed 0.001 rad inside the box over the last 10 steps (1e-2: 94/96 and 95/96). v1
+      (2 devices, seeds 0–31 / 32–95): 1e-3 32/32 (91 %) / 64/64 (97 %); 1e-2 32/32 (94 %) / 64/64
+      (98 %); 3e-2 32/32 (88 %).
     * v1: 15 rGCL iterations × 3 GPS iterations (45 C-steps); v2: 30 iterations."""
     v1 = schedule == "v1"
     return RGCLConfig(
