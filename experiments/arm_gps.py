@@ -19,7 +19,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from diffgcl.algorithms.gps_cli import add_gps_arguments, run_arm_gps
+from diffgcl.cli.gps import add_gps_arguments, run_arm_gps
 
 
 def main(argv=None) -> int:

@@ -7,7 +7,7 @@ the final controller's noise-free rollout within 0.1 rad of upright on both join
 10 steps), mean final distance (largest joint error at the last step), re-optimisation success
 (a fresh initial controller optimised by GPS on the frozen learned cost, same success test), the
 EPIC distance of the learned per-step cost to the expert cost on a coverage set of arm
-transitions (:func:`diffgcl.algorithms.rgcl.arm_coverage`), compile and run times.
+transitions (:func:`diffgcl.eval.learned_cost.arm_coverage`), compile and run times.
 
 Timing (v2, or the preset's only schedule): ``seconds_per_run_after_compile`` is one unbatched
 run of ``jit(train)`` after compilation (best of 2); ``sweep_speedup`` is the time of the same
@@ -37,7 +37,8 @@ import numpy as np
 
 from diffgcl.algorithms.presets import default, paper_v1, paper_v2
 from diffgcl.algorithms.rgcl import final_rollouts, make_train
-from diffgcl.algorithms.rgcl_cli import evaluate_cost, load_demos
+from diffgcl.algorithms.runner import load_demo_batch
+from diffgcl.eval.learned_cost import evaluate_cost
 from diffgcl.runtime import add_devices_option, apply_devices_option
 from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
@@ -138,7 +139,7 @@ def main(argv=None) -> int:
 
     enable_compilation_cache()
     env = make_env("arm")
-    demos = load_demos(None, env)
+    demos = load_demo_batch(None, env)
     n = 4 if args.fast and args.seeds == 32 else args.seeds
     seeds = list(range(args.first_seed, args.first_seed + n))
     schedules = SCHEDULES[args.preset]

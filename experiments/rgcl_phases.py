@@ -62,7 +62,7 @@ def main(argv=None) -> int:
     from diffgcl.algorithms.gps import make_gps_phases
     from diffgcl.algorithms.presets import default, with_overrides
     from diffgcl.algorithms.rgcl import make_train
-    from diffgcl.algorithms.rgcl_cli import load_demos
+    from diffgcl.algorithms.runner import load_demo_batch
     from diffgcl.envs import make_env
     from diffgcl.runtime import enable_compilation_cache
     from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
@@ -110,7 +110,7 @@ def main(argv=None) -> int:
     )
 
     # Whole rGCL v2 iterations, without and with the cost update.
-    demos = load_demos(None, env)
+    demos = load_demo_batch(None, env)
     variants = (("rGCL iteration, no cost update", ["gcl.n_steps=0"]), ("rGCL iteration", []))
     for label, overrides in variants:
         rgcl = make_train(with_overrides(config, overrides), env)

@@ -16,7 +16,7 @@ import pytest
 from rosbags.rosbag1 import Writer as Writer1
 from rosbags.typesys import get_types_from_msg
 
-from diffgcl.data import bags_cli
+from diffgcl.cli import bags as bags_cli
 from diffgcl.data.bags import BagError, bag_format, inspect_bag, open_bag, typestore_for
 from diffgcl.data.demos import DemoSet
 from diffgcl.data.ingest import (

@@ -127,7 +127,7 @@ def test_arm_gps_32_seeds():
 def test_cli_registers_gps_and_demos_subcommands(tmp_path, monkeypatch):
     import argparse
 
-    from diffgcl.algorithms import gps_cli
+    from diffgcl.cli import gps as gps_cli
 
     parser = argparse.ArgumentParser()
     gps_cli.register(parser.add_subparsers(dest="command"))
@@ -147,7 +147,7 @@ def test_cli_registers_gps_and_demos_subcommands(tmp_path, monkeypatch):
 
 
 def test_gps_reports_c_step_failures_without_nan(capsys):
-    from diffgcl.algorithms.gps_cli import report_failures
+    from diffgcl.algorithms.gps_runner import report_failures
 
     env = PointMass()
 

@@ -206,11 +206,12 @@ def test_cli_train_eval_plot_on_stand_in(slider, tmp_path, monkeypatch):
     import json
 
     import diffgcl.envs
-    from diffgcl.algorithms import presets, rgcl_cli
+    from diffgcl.algorithms import presets
+    from diffgcl.cli import rgcl as rgcl_cli
 
     env, demos = slider
     monkeypatch.setattr(diffgcl.envs, "make_env", lambda name, **kw: env)
-    monkeypatch.setattr(rgcl_cli, "load_demos", lambda path, env: demos)
+    monkeypatch.setattr(rgcl_cli, "load_demo_batch", lambda path, env: demos)
     monkeypatch.setitem(presets.PRESETS, "tiny", lambda: tiny_config("v2", iterations=3))
     parser = argparse.ArgumentParser()
     rgcl_cli.register(parser.add_subparsers(dest="command"))
@@ -307,13 +308,13 @@ def test_default_preset_reaches_upright_on_the_arm(schedule):
     the built-in demos succeeds (DESIGN §2's strict test) on at least 7 of 8 seeds, and a fresh
     controller re-optimised on each learned cost succeeds on at least 6 of 8."""
     from diffgcl.algorithms.presets import default
-    from diffgcl.algorithms.rgcl_cli import load_demos
+    from diffgcl.algorithms.runner import load_demo_batch
     from diffgcl.envs import make_env
 
     jax.config.update("jax_enable_x64", False)  # the preset is tuned and measured in float32
     try:
         env = make_env("arm")
-        demos = load_demos(None, env)
+        demos = load_demo_batch(None, env)
         config = default(schedule)
         rgcl = make_train(config, env)
         keys = jnp.stack([jax.random.PRNGKey(s) for s in range(8)])

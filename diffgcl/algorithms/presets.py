@@ -65,7 +65,7 @@ def default(schedule: str = "v2") -> RGCLConfig:
     """Ours, for reliability. What each choice is for, and the evidence: 32 seeds (0–31) per
     figure, "success (re-optimisation)"; (a) marks runs on the earlier built-in demos (a
     10-iteration GPS expert), the rest use the current ones (30 iterations, see
-    :func:`diffgcl.algorithms.rgcl_cli.builtin_demos`).
+    :func:`diffgcl.algorithms.expert.builtin_demos`).
 
     * a quadratic cost (``hidden=()``: ``y`` affine in the normalised state, so ``c`` is a PSD
       quadratic in x). The 2-layer ReLU network put the cost's minimum 0.05–0.2 rad from upright,

@@ -512,40 +512,6 @@ def make_reoptimise(config: RGCLConfig, env: Env, network: CostNetwork):
     return reopt
 
 
-def arm_coverage(env: Env, key: PRNGKey, n: int = 1024):
-    """Coverage transitions for EPIC on the arm: joint angles uniform over the box spanned by the
-    start and the target with a 0.5 rad margin, velocities ~ N(0, 1), actions ~ N(0, 2²); the
-    successor states come from the simulator. Returns (X, U, X_next) with [n, ·] each."""
-    key_q, key_v, key_u = jax.random.split(key, 3)
-    X0 = jnp.asarray(env.initial_states())
-    dtype = X0.dtype
-    lo = jnp.minimum(X0[:, :2].min(0), 0.0) - 0.5
-    hi = jnp.maximum(X0[:, :2].max(0), 0.0) + 0.5
-    q = lo + (hi - lo) * jax.random.uniform(key_q, (n, 2), dtype)
-    v = jax.random.normal(key_v, (n, env.dX - 2), dtype)
-    X = jnp.concatenate([q, v], axis=-1)
-    U = 2.0 * jax.random.normal(key_u, (n, env.dU), dtype)
-    X_next = jax.vmap(env.step)(X, U)
-    return X, U, X_next
-
-
-def epic_to_expert(
-    env: Env, network: CostNetwork, params: CostParams, coverage, n_canonical: int = 256
-) -> Array:
-    """EPIC distance (γ = 1) between the learned per-step cost and ``env.expert_cost`` on the
-    coverage transitions ``(X, U, X_next)`` (:func:`diffgcl.eval.epic.epic_distance`); the
-    canonicalising distributions are the first ``n_canonical`` coverage states, successor states
-    and (shifted, so independent of the states) actions."""
-    from diffgcl.eval.epic import epic_distance
-
-    X, U, X_next = coverage
-    m = min(n_canonical, X.shape[0])
-    A = jnp.roll(U, X.shape[0] // 3, axis=0)[:m]
-    learned = lambda x, u, x_next: network.cost(params, x, u, 0)
-    expert = lambda x, u, x_next: env.expert_cost(x, u, 0)
-    return epic_distance(learned, expert, X, U, X_next, X[:m], A, X_next[:m])
-
-
 def demo_batch(demos, conditions: int, dtype=None) -> DemoBatch:
     """Host-side: a :class:`DemoBatch` [C, N, ...] from a :class:`diffgcl.data.demos.DemoSet`,
     grouping episodes by their ``condition`` metadata (all in condition 0 when absent), with the

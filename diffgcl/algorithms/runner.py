@@ -1,5 +1,9 @@
 """Host loop around the pure rGCL core: chunks, progress, checkpoints, resume, NaN report, run dir.
 
+Also the host-side readers the commands and experiments share: :func:`load_demo_batch` (a demo
+folder or the built-in demos as a :class:`~diffgcl.algorithms.rgcl.DemoBatch`) and
+:func:`load_run` (a run folder back into its config, state and metrics).
+
 :func:`train_seeds` runs one rGCL configuration for several seeds as one vmapped batch. The pure
 pieces come from :func:`diffgcl.algorithms.rgcl.make_train`: ``init`` (with pre-training) once,
 then ``run`` over chunks of ``chunk`` iterations, each a jitted call. Because the per-iteration
@@ -341,3 +345,57 @@ def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=
     plots.arm_motion(env, m.sample_X[0], X_final[0, 0], out / "arm_motion.png")
     plots.cost_landscape(env, network, params0, np.asarray(demos.X[0]), out / "cost_landscape.png")
     return summary
+
+
+# ---- demos and saved runs ----------------------------------------------------------------------
+
+
+def load_demo_batch(path: Path | None, env):
+    """The demos at ``path`` (a DemoSet folder) or the built-in ones, as a DemoBatch."""
+    from diffgcl.algorithms.expert import builtin_demos
+    from diffgcl.algorithms.rgcl import demo_batch
+    from diffgcl.data.demos import DemoSet
+
+    demos = builtin_demos(env) if path is None else DemoSet.load(path)
+    return demo_batch(demos, int(np.asarray(env.initial_states()).shape[0]))
+
+
+def config_from_dict(d: dict):
+    """Inverse of ``RGCLConfig.to_dict`` (for run folders)."""
+    from diffgcl.algorithms.gps import GPSConfig
+    from diffgcl.algorithms.rgcl import RGCLConfig
+    from diffgcl.costs.gcl import GCLConfig
+    from diffgcl.costs.network import CostNetworkConfig
+
+    d = dict(d)
+    net = dict(d.pop("network"))
+    net["hidden"] = tuple(net["hidden"])
+    return RGCLConfig(
+        gps=GPSConfig(**d.pop("gps")),
+        network=CostNetworkConfig(**net),
+        gcl=GCLConfig(**d.pop("gcl")),
+        **d,
+    )
+
+
+def load_run(run_dir: Path, env):
+    """(config, RunResult, DemoBatch) of a run folder written by ``train``."""
+    run_dir = Path(run_dir)
+    config = config_from_dict(json.loads((run_dir / "config.json").read_text()))
+    with np.load(run_dir / CHECKPOINT) as f:
+        seeds = [int(s) for s in f["seeds"]]
+    summary = (
+        json.loads((run_dir / "summary.json").read_text())
+        if (run_dir / "summary.json").is_file()
+        else {}
+    )
+    demo_dir = summary.get("demos")
+    demos = load_demo_batch(Path(demo_dir) if demo_dir else None, env)
+    rgcl = make_train(config, env)
+    S = len(seeds)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
+    key_init, key_loop = jax.vmap(rgcl.split_key)(keys)
+    hp = jax.tree.map(lambda a: jnp.broadcast_to(a, (S,)), rgcl.default_hparams())
+    state_like, m_like = checkpoint_like(rgcl, key_init, key_loop, demos, hp)
+    state, metrics, done, _ = _load_checkpoint(run_dir / CHECKPOINT, state_like, m_like)
+    return config, RunResult(state=state, metrics=metrics, seeds=seeds, config=config), demos

@@ -75,8 +75,6 @@ def learning_curves(metrics, path: Path, title: str = "") -> None:
 def arm_motion(env, sample_X, X_final, path: Path) -> None:
     """sample_X: [I, G, C, N, T+1, dX] one seed's GPS samples; X_final: [T+1, dX] the final
     controller's noise-free rollout (condition 0)."""
-    from diffgcl.algorithms.gps_cli import arm_points
-
     plt = _plt()
     q = np.asarray(sample_X)[..., 0, :, :, :2]  # [I, G, N, T+1, 2]
     q = q.reshape(-1, *q.shape[-3:])  # [I·G, N, T+1, 2]
@@ -139,4 +137,115 @@ def cost_landscape(env, network, params, demo_X, path: Path, n: int = 81) -> Non
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---- GPS runs (experiments/arm_gps.py, diffgcl gps) ----
+
+
+def gps_learning_curves(metrics, path: Path, label: str = "") -> None:
+    """Mean true cost, step_mult and controller entropy per iteration (mean ± std over seeds and
+    conditions; what GPS's GUI showed)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    its = np.arange(1, metrics.cost.shape[1] + 1)
+    fig, axes = plt.subplots(1, 3, figsize=(13, 3.6))
+    for ax, name, values, log in (
+        (axes[0], "mean sample cost", metrics.cost, True),
+        (axes[1], "step_mult", metrics.step_mult, True),
+        (axes[2], "controller entropy (nats)", metrics.entropy, False),
+    ):
+        v = np.asarray(values).reshape(values.shape[0], values.shape[1], -1)
+        mean, std = v.mean(axis=(0, 2)), v.std(axis=(0, 2))
+        ax.plot(its, mean, marker="o")
+        ax.fill_between(its, mean - std, mean + std, alpha=0.25)
+        ax.set_xlabel("iteration")
+        ax.set_title(name)
+        if log:
+            ax.set_yscale("log")
+    success = np.all(np.asarray(metrics.success), axis=-1).mean(axis=0)
+    twin = axes[0].twinx()
+    twin.plot(its, success, color="tab:green", ls="--", label="success rate")
+    twin.set_ylim(-0.05, 1.05)
+    twin.legend(loc="upper right")
+    fig.suptitle(f"GPS on the arm {label}".strip())
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def arm_points(env, X) -> np.ndarray:
+    """Planar positions of the arm's bodies and sites along X: [T+1, dX] -> [T+1, P, 2]."""
+    from mujoco import mjx
+
+    def points(x):
+        d = mjx.kinematics(env.model, env.data0.replace(qpos=x[:2]))
+        return jnp.concatenate([d.xpos[1:, :2], d.site_xpos[:, :2]], axis=0)
+
+    return np.asarray(jax.jit(jax.vmap(points))(jnp.asarray(X)))
+
+
+def arm_rollout(env, X, path: Path, every: int = 5) -> None:
+    """Joint angles over time and a stroboscopic drawing of the arm (X: [T+1, dX], one run)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    P = arm_points(env, X)
+    X = np.asarray(X)
+    t = np.arange(X.shape[0]) * env.dt
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4.5))
+    for j in range(2):
+        axes[0].plot(t, X[:, j], label=f"q{j + 1}")
+    axes[0].axhspan(-env.success_tolerance, env.success_tolerance, color="g", alpha=0.15)
+    axes[0].set_xlabel("time (s)")
+    axes[0].set_ylabel("joint angle (rad)")
+    axes[0].legend()
+    cmap = plt.get_cmap("viridis")
+    idx = list(range(0, X.shape[0], every)) + [X.shape[0] - 1]
+    for n, i in enumerate(idx):
+        colour = cmap(n / max(len(idx) - 1, 1))
+        axes[1].plot(P[i, :, 0], P[i, :, 1], "-o", color=colour, ms=3, lw=1.5)
+    axes[1].set_aspect("equal")
+    axes[1].set_title(f"arm every {every} steps (dark: start, yellow: end)")
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=120)
+    plt.close(fig)
+
+
+def arm_animation(env, X, path: Path, every: int = 2) -> None:
+    """GIF of the arm along X: [T+1, dX] (every ``every``-th state, real time)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from matplotlib.animation import FuncAnimation, PillowWriter
+
+    P = arm_points(env, X)
+    reach = float(np.abs(P).max()) * 1.1
+    fig, ax = plt.subplots(figsize=(4, 4))
+    ax.set_xlim(-reach, reach)
+    ax.set_ylim(-reach, reach)
+    ax.set_aspect("equal")
+    target = arm_points(env, jnp.zeros((1, env.dX), jnp.asarray(X).dtype))[0]
+    ax.plot(target[:, 0], target[:, 1], "--", color="g", lw=1, label="target")
+    (line,) = ax.plot([], [], "-o", lw=3, ms=5)
+    title = ax.set_title("")
+    ax.legend(loc="lower left")
+    frames = list(range(0, P.shape[0], every))
+
+    def draw(i):
+        line.set_data(P[i, :, 0], P[i, :, 1])
+        title.set_text(f"t = {i * env.dt:.2f} s")
+        return line, title
+
+    anim = FuncAnimation(fig, draw, frames=frames, blit=False)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    anim.save(path, writer=PillowWriter(fps=max(1, round(1 / (every * env.dt)))))
     plt.close(fig)

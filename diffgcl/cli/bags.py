@@ -1,7 +1,7 @@
 """``diffgcl bags inspect|convert|synth``: the ROS-bag commands of the CLI.
 
 :func:`register` adds the ``bags`` command to an ``argparse`` sub-parser collection; the module
-also runs on its own (``python -m diffgcl.data.bags_cli bags inspect PATH``).
+also runs on its own (``python -m diffgcl.cli.bags bags inspect PATH``).
 
 * ``bags inspect PATH...`` — topics, types, message counts, rates, largest gaps, duration.
 * ``bags convert PATH... --out DIR [--topics MAP.yaml]`` — ingest into a demo dataset

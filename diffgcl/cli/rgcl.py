@@ -6,10 +6,10 @@
     diffgcl eval RUN_DIR        success, final distance, re-optimisation, EPIC of a saved run
     diffgcl plot RUN_DIR        redraw a run folder's plots
 
-The built-in demonstrations (:func:`builtin_demos`): 10 stochastic rollouts of a GPS expert
-trained on the arm with the expert cost (:mod:`diffgcl.algorithms.expert`). They are generated on
-first use (a GPS run over up to 8 seeds, ~1 min on 2 cores) and cached under
-``diffgcl.runtime.cache_root() / "demos"``; later runs load them.
+Argument parsing and printing only: the host loop, run folders and demo loading live in
+:mod:`diffgcl.algorithms.runner`, the built-in demonstrations in
+:func:`diffgcl.algorithms.expert.builtin_demos`, the cost evaluation in
+:mod:`diffgcl.eval.learned_cost`.
 
 :func:`run_demo` is what ``diffgcl demo`` / ``make demo`` runs: the ``default`` preset, both
 schedules, a handful of seeds, a success table and the run folders with their plots.
@@ -26,53 +26,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-BUILTIN_DEMOS = "arm-gps-expert-10-it30"
-EXPERT_ITERATIONS = 30
-
-
-def builtin_demos(env=None, *, num_demos: int = 10, seed: int = 0, verbose: bool = True):
-    """The built-in arm demos (a :class:`diffgcl.data.demos.DemoSet`), generated once and cached.
-
-    The expert is GPS on the expert cost (the seed's "10 demos from a GPS expert"), 8 seeds of
-    ``EXPERT_ITERATIONS`` iterations; the succeeding seed with the lowest final true cost gives the
-    demos (its controller sampled with its own noise). 30 rather than GPS's 10 iterations: at 10
-    the expert is not converged (true cost 95.3–97.2 vs 94.5–95.1 at 30) and its demos still
-    drift 0.04–0.07 rad about the target over the last 10 steps (0.01–0.04 at 30); every expert
-    overshoots joint 1 by 0.12–0.23 rad around step 70 (the torque cap), and the learned cost
-    sees that too."""
-    from diffgcl.data.demos import DemoSet
-    from diffgcl.runtime import cache_root
-
-    folder = cache_root() / "demos" / f"{BUILTIN_DEMOS}-seed{seed}"
-    if (folder / "demos.npz").is_file():
-        return DemoSet.load(folder)
-    from diffgcl.algorithms.expert import write_expert_demos
-    from diffgcl.algorithms.gps import GPSConfig
-    from diffgcl.algorithms.gps_cli import run_seeds
-    from diffgcl.envs import make_env
-
-    env = make_env("arm") if env is None else env
-    if verbose:
-        print(f"generating the built-in expert demos (GPS on the expert cost) into {folder}")
-    seeds = list(range(seed, seed + 8))
-    config = GPSConfig(iterations=EXPERT_ITERATIONS)
-    result = run_seeds(config, env, env.expert_cost, seeds, chunk=8)
-    final = np.all(result["metrics"].success[:, -1], axis=-1)
-    if not final.any():
-        raise RuntimeError("builtin_demos: no GPS expert seed succeeded")
-    final_cost = np.asarray(result["metrics"].cost[:, -1]).sum(axis=-1)
-    i = int(np.argmin(np.where(final, final_cost, np.inf)))
-    controllers = jax.tree.map(lambda a: jnp.asarray(a[i]), result["state"].controller)
-    return write_expert_demos(
-        folder,
-        env,
-        controllers,
-        jax.random.PRNGKey(10_000 + seeds[i]),
-        num_demos,
-        cost=env.expert_cost,
-        seed=seeds[i],
-    )
-
+from diffgcl.algorithms.runner import load_demo_batch, load_run
+from diffgcl.eval.learned_cost import evaluate_cost
 
 # ---- shared helpers -----------------------------------------------------------------------------
 
@@ -85,15 +40,6 @@ def _setup(args):
     enable_compilation_cache()
 
 
-def load_demos(path: Path | None, env):
-    """The demos at ``path`` (a DemoSet folder) or the built-in ones, as a DemoBatch."""
-    from diffgcl.algorithms.rgcl import demo_batch
-    from diffgcl.data.demos import DemoSet
-
-    demos = builtin_demos(env) if path is None else DemoSet.load(path)
-    return demo_batch(demos, int(np.asarray(env.initial_states()).shape[0]))
-
-
 def config_from_args(args):
     from diffgcl.algorithms.presets import get_preset, with_overrides
 
@@ -102,24 +48,6 @@ def config_from_args(args):
     if getattr(args, "iterations", None):
         overrides.append(f"iterations={args.iterations}")
     return with_overrides(config, overrides)
-
-
-def config_from_dict(d: dict):
-    """Inverse of ``RGCLConfig.to_dict`` (for run folders)."""
-    from diffgcl.algorithms.gps import GPSConfig
-    from diffgcl.algorithms.rgcl import RGCLConfig
-    from diffgcl.costs.gcl import GCLConfig
-    from diffgcl.costs.network import CostNetworkConfig
-
-    d = dict(d)
-    net = dict(d.pop("network"))
-    net["hidden"] = tuple(net["hidden"])
-    return RGCLConfig(
-        gps=GPSConfig(**d.pop("gps")),
-        network=CostNetworkConfig(**net),
-        gcl=GCLConfig(**d.pop("gcl")),
-        **d,
-    )
 
 
 def _add_common(p: argparse.ArgumentParser, seeds: int = 4) -> None:
@@ -162,7 +90,7 @@ def train_command(args) -> int:
     _setup(args)
     env = make_env("arm")
     config = config_from_args(args)
-    demos = load_demos(args.demos, env)
+    demos = load_demo_batch(args.demos, env)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
     out = (
         args.out
@@ -202,7 +130,7 @@ def sweep_command(args) -> int:
     _setup(args)
     env = make_env("arm")
     config = config_from_args(args)
-    demos = load_demos(args.demos, env)
+    demos = load_demo_batch(args.demos, env)
     rgcl = make_train(config, env)
     base = rgcl.default_hparams()
     grid = {name: [float(getattr(base, name))] for name in SWEEPABLE}
@@ -250,32 +178,6 @@ def sweep_command(args) -> int:
 # ---- eval / plot --------------------------------------------------------------------------------
 
 
-def load_run(run_dir: Path, env):
-    """(config, RunResult, DemoBatch) of a run folder written by ``train``."""
-    from diffgcl.algorithms.rgcl import make_train
-    from diffgcl.algorithms.runner import CHECKPOINT, RunResult, _load_checkpoint, checkpoint_like
-
-    run_dir = Path(run_dir)
-    config = config_from_dict(json.loads((run_dir / "config.json").read_text()))
-    with np.load(run_dir / CHECKPOINT) as f:
-        seeds = [int(s) for s in f["seeds"]]
-    summary = (
-        json.loads((run_dir / "summary.json").read_text())
-        if (run_dir / "summary.json").is_file()
-        else {}
-    )
-    demo_dir = summary.get("demos")
-    demos = load_demos(Path(demo_dir) if demo_dir else None, env)
-    rgcl = make_train(config, env)
-    S = len(seeds)
-    keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
-    key_init, key_loop = jax.vmap(rgcl.split_key)(keys)
-    hp = jax.tree.map(lambda a: jnp.broadcast_to(a, (S,)), rgcl.default_hparams())
-    state_like, m_like = checkpoint_like(rgcl, key_init, key_loop, demos, hp)
-    state, metrics, done, _ = _load_checkpoint(run_dir / CHECKPOINT, state_like, m_like)
-    return config, RunResult(state=state, metrics=metrics, seeds=seeds, config=config), demos
-
-
 def eval_command(args) -> int:
     """Success, final distance, re-optimisation and EPIC of a saved run."""
     from diffgcl.algorithms.runner import run_summary
@@ -290,26 +192,6 @@ def eval_command(args) -> int:
     print(json.dumps({k: v for k, v in summary.items() if k not in ("rollbacks",)}, indent=1))
     (Path(args.run) / "eval.json").write_text(json.dumps(summary, indent=1))
     return 0
-
-
-def evaluate_cost(config, env, params, seeds) -> dict:
-    """Re-optimisation success and EPIC distance of learned costs ``params`` [S, ...]."""
-    from diffgcl.algorithms.rgcl import arm_coverage, epic_to_expert, make_network, make_reoptimise
-
-    network = make_network(config, env)
-    params = jax.tree.map(jnp.asarray, params)
-    reopt = make_reoptimise(config, env, network)
-    keys = jnp.stack([jax.random.PRNGKey(100_000 + s) for s in seeds])
-    _, m = jax.jit(jax.vmap(reopt))(keys, params)
-    reopt_success = np.asarray(m.success[:, -1]).all(-1)
-    coverage = arm_coverage(env, jax.random.PRNGKey(7))
-    epic = jax.jit(jax.vmap(lambda p: epic_to_expert(env, network, p, coverage)))(params)
-    return {
-        "reopt_success": reopt_success.tolist(),
-        "reopt_success_rate": float(reopt_success.mean()),
-        "epic_distance": float(np.mean(epic)),
-        "epic_distance_per_seed": np.asarray(epic).tolist(),
-    }
 
 
 def plot_command(args) -> int:
@@ -338,7 +220,7 @@ def run_demo(args=None) -> int:
 
     _setup(args)
     env = make_env("arm")
-    demos = load_demos(None, env)
+    demos = load_demo_batch(None, env)
     n = int(getattr(args, "seeds", None) or 4)
     first = int(getattr(args, "seed", 0) or 0)
     seeds = list(range(first, first + n))

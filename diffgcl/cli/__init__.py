@@ -17,9 +17,9 @@ import sys
 import time
 
 SUBCOMMAND_MODULES: tuple[str, ...] = (
-    "diffgcl.algorithms.gps_cli",
-    "diffgcl.algorithms.rgcl_cli",
-    "diffgcl.data.bags_cli",
+    "diffgcl.cli.gps",
+    "diffgcl.cli.rgcl",
+    "diffgcl.cli.bags",
 )
 
 
@@ -36,7 +36,7 @@ def cmd_envs(args: argparse.Namespace) -> int:
 
 
 def cmd_demo(args: argparse.Namespace) -> int:
-    from diffgcl.algorithms.rgcl_cli import run_demo
+    from diffgcl.cli.rgcl import run_demo
 
     return run_demo(args)
 
