@@ -178,17 +178,30 @@ class GPSPhases(NamedTuple):
     """One GPS iteration in parts (pure; every function handles all C conditions at once).
 
     init(key, hparams=None) -> GPSState; outer(state, key) -> GPSSamples (sample the current
-    controller, fit dynamics); expand(cost, samples) -> QuadraticCost [C] about the origin (the
-    GPS sample-averaged expansion of ``cost``, a residual function when ``config.gauss_newton``);
-    adapt_step(state, samples, quad) -> step_mult [C] (from the second iteration on; ``quad`` is
-    the expansion of the cost the step is judged with); inner(state, samples, quad, step_mult)
-    -> (GPSState, GPSMetrics) (C-step with ε = kl_step·step_mult·T and the metrics).
+    controller, fit dynamics); fit(X, U) -> GPSSamples (the same from given samples [C, N, ...],
+    e.g. drawn from a global policy); expand(cost, samples) -> QuadraticCost [C] about the origin
+    (the GPS sample-averaged expansion of ``cost``, a residual function when
+    ``config.gauss_newton``); adapt_step(state, samples, quad, current=None, shared=False) ->
+    step_mult [C] (from the second iteration on; ``quad`` is the expansion of the cost the step is
+    judged with); inner(state, samples, quad, step_mult, anchor=None) -> (GPSState, GPSMetrics)
+    (C-step with ε = kl_step·step_mult·T and the metrics).
+
+    The KL anchor and the step rule default to trajectory-optimisation GPS: the C-step is bounded
+    against the controller that drew the samples, and each condition adapts its own step from
+    ``J_prev`` (that controller), ``J_pred`` (the controller the last C-step produced, both under
+    the previous dynamics and cost) and ``J_act`` (the current controller under the new ones).
+    MDGPS (Montgomery & Levine 2016; :mod:`diffgcl.algorithms.mdgps`) passes the global policy
+    linearised at the samples as ``anchor`` and as ``current``, and ``shared=True``: the three
+    estimates are averaged over the conditions and one step size serves them all. The state keeps
+    the last anchor as ``prev_controller``, so ``J_prev`` is the previous policy linearisation
+    there, as in GPS's ``AlgorithmMDGPS``.
     """
 
     init: Callable[..., GPSState]
     outer: Callable[[GPSState, PRNGKey], GPSSamples]
+    fit: Callable[[Array, Array], GPSSamples]
     expand: Callable[[Callable, GPSSamples], QuadraticCost]
-    adapt_step: Callable[[GPSState, GPSSamples, QuadraticCost], Array]
+    adapt_step: Callable[..., Array]
     inner: Callable[..., tuple[GPSState, GPSMetrics]]
 
 
@@ -271,44 +284,42 @@ def make_gps_phases(
         )
 
     # The per-condition parts below see ``state`` without the condition axis.
+    def fit_one(X: Array, U: Array) -> GPSSamples:
+        return GPSSamples(X=X, U=U, dynamics=fit(X, U), x0=empirical_x0(X[:, 0], config.x0_var))
+
     def outer_one(ctrl: LinearGaussianController, x0_c: Array, key: PRNGKey) -> GPSSamples:
         samples = sample_controller(env, ctrl, x0_c, key, N, smooth_sigma=config.smooth_sigma)
-        X, U = samples.X, samples.U
-        return GPSSamples(X=X, U=U, dynamics=fit(X, U), x0=empirical_x0(X[:, 0], config.x0_var))
+        return fit_one(samples.X, samples.U)
 
     def expand_one(cost: Callable, samples: GPSSamples) -> QuadraticCost:
         X, U = samples.X, samples.U
         quad = expand_cost_samples(cost, X, U, gauss_newton=config.gauss_newton)
         return about_origin(quad, X.mean(axis=0), U.mean(axis=0))
 
-    def adapt_one(state: GPSState, samples: GPSSamples, quad: QuadraticCost) -> Array:
-        # Step adaptation (GPS _stepadjust), skipped on the first iteration.
-        ctrl = state.controller
+    def laplace_estimates(
+        state: GPSState, samples: GPSSamples, quad: QuadraticCost, current
+    ) -> Array:
+        """[J_prev, J_pred, J_act] of one condition (GPS ``_stepadjust``)."""
         prev_dyn, prev_cost, prev_x0 = state.prev_dynamics, state.prev_cost, state.prev_x0
         J_prev = laplace_cost(forward_pass(prev_dyn, state.prev_controller, prev_x0), prev_cost)
-        J_pred = laplace_cost(forward_pass(prev_dyn, ctrl, prev_x0), prev_cost)
-        J_act = laplace_cost(forward_pass(samples.dynamics, ctrl, samples.x0), quad)
-        adapted = adapt_step_mult(
-            state.step_mult,
-            J_prev,
-            J_pred,
-            J_act,
-            min_step_mult=config.min_step_mult,
-            max_step_mult=config.max_step_mult,
-        )
-        keep = (state.iteration == 0) | ~jnp.isfinite(adapted)
-        return jnp.where(keep, state.step_mult, adapted)
+        J_pred = laplace_cost(forward_pass(prev_dyn, state.controller, prev_x0), prev_cost)
+        J_act = laplace_cost(forward_pass(samples.dynamics, current, samples.x0), quad)
+        return jnp.stack([J_prev, J_pred, J_act])
 
     def inner_one(
-        state: GPSState, samples: GPSSamples, quad: QuadraticCost, step_mult: Array, x0_c: Array
+        state: GPSState,
+        samples: GPSSamples,
+        quad: QuadraticCost,
+        step_mult: Array,
+        anchor: LinearGaussianController,
+        x0_c: Array,
     ) -> tuple[GPSState, GPSMetrics]:
-        ctrl = state.controller
         X, U = samples.X, samples.U
         epsilon = state.kl_step * step_mult * T
         new_ctrl, info = c_step(
             samples.dynamics,
             quad,
-            ctrl,
+            anchor,
             samples.x0,
             epsilon,
             state.eta,
@@ -332,7 +343,7 @@ def make_gps_phases(
         )
         new_state = GPSState(
             controller=new_ctrl,
-            prev_controller=ctrl,
+            prev_controller=anchor,
             prev_dynamics=samples.dynamics,
             prev_cost=quad,
             prev_x0=samples.x0,
@@ -362,17 +373,60 @@ def make_gps_phases(
     def expand(cost: Callable, samples: GPSSamples) -> QuadraticCost:
         return jax.vmap(expand_one, in_axes=(None, 0))(cost, samples)
 
-    def adapt_step(state: GPSState, samples: GPSSamples, quad: QuadraticCost) -> Array:
-        return jax.vmap(adapt_one, in_axes=(state_axes, 0, 0))(state, samples, quad)
+    def fit_samples(X: Array, U: Array) -> GPSSamples:
+        return jax.vmap(fit_one)(X, U)
+
+    def adapt_step(
+        state: GPSState,
+        samples: GPSSamples,
+        quad: QuadraticCost,
+        current: LinearGaussianController | None = None,
+        shared: bool = False,
+    ) -> Array:
+        """New step_mult [C]; skipped (kept) on the first iteration and where not finite.
+        ``current``: the controllers [C] judged by ``J_act`` (default ``state.controller``);
+        ``shared``: average the estimates over the conditions, one step for all (MDGPS)."""
+        current = state.controller if current is None else current
+        J = jax.vmap(laplace_estimates, in_axes=(state_axes, 0, 0, 0))(
+            state, samples, quad, current
+        )  # [C, 3]
+        if shared:
+            J = jnp.broadcast_to(J.mean(axis=0), J.shape)
+        adapted = adapt_step_mult(
+            state.step_mult,
+            J[:, 0],
+            J[:, 1],
+            J[:, 2],
+            min_step_mult=config.min_step_mult,
+            max_step_mult=config.max_step_mult,
+        )
+        if shared:  # one multiplier: the conditions' step_mult agree from the first on
+            adapted = jnp.broadcast_to(adapted.mean(), adapted.shape)
+        keep = (state.iteration == 0) | ~jnp.isfinite(adapted)
+        return jnp.where(keep, state.step_mult, adapted)
 
     def inner(
-        state: GPSState, samples: GPSSamples, quad: QuadraticCost, step_mult: Array
+        state: GPSState,
+        samples: GPSSamples,
+        quad: QuadraticCost,
+        step_mult: Array,
+        anchor: LinearGaussianController | None = None,
     ) -> tuple[GPSState, GPSMetrics]:
-        return jax.vmap(inner_one, in_axes=(state_axes, 0, 0, 0, 0), out_axes=(state_axes, 0))(
-            state, samples, quad, step_mult, X0
+        """C-step of every condition; ``anchor``: the KL anchor [C] (default: the controllers
+        that drew the samples, ``state.controller``)."""
+        anchor = state.controller if anchor is None else anchor
+        return jax.vmap(inner_one, in_axes=(state_axes, 0, 0, 0, 0, 0), out_axes=(state_axes, 0))(
+            state, samples, quad, step_mult, anchor, X0
         )
 
-    return GPSPhases(init=init, outer=outer, expand=expand, adapt_step=adapt_step, inner=inner)
+    return GPSPhases(
+        init=init,
+        outer=outer,
+        fit=fit_samples,
+        expand=expand,
+        adapt_step=adapt_step,
+        inner=inner,
+    )
 
 
 def make_gps(

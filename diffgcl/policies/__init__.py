@@ -1,1 +1,11 @@
-"""Global policies on observations (MDGPS)."""
+"""The global policy of GPS: a Gaussian policy on observations and its MDGPS S-step.
+
+* :mod:`diffgcl.policies.network` — :class:`GaussianPolicy` (``init`` / ``mean_action`` /
+  ``sample_action`` / ``log_prob``), :class:`PolicyConfig`, the frozen observation normaliser;
+* :mod:`diffgcl.policies.mdgps` — the S-step (precision-weighted regression onto the local
+  controllers, the closed-form variance) and the policy's autodiff linearisation.
+
+Algorithms that use them: :mod:`diffgcl.algorithms.mdgps` (MDGPS with a known cost, and the
+policy phases shared with rGCL), :mod:`diffgcl.algorithms.rgcl` (``RGCLConfig.policy``) and
+:mod:`diffgcl.algorithms.bc` (behaviour cloning, the baseline).
+"""

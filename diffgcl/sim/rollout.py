@@ -12,6 +12,8 @@ step and action dimension, optionally smoothed along time with a Gaussian filter
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import jax
 import jax.numpy as jnp
 from jax import lax
@@ -116,3 +118,59 @@ def rollout_policy(
     X = jnp.concatenate([X, x_final[None]], axis=0)
     O = jnp.concatenate([O, env.obs(x_final)[None]], axis=0)
     return Trajectory(X=X, U=U, O=O)
+
+
+def rollout_observed(
+    env: Env,
+    act: Callable[[Array, Array], Array],
+    x0: Array,
+    noise: Array,
+    *,
+    obs_key: PRNGKey | None = None,
+) -> Trajectory:
+    """Roll out ``u_t = act(o_t, ε_t)`` on observations ``o_t = env.obs(x_t)`` from ``x0: [dX]``
+    with pre-drawn noise ``ε: [T, dU]`` (a global policy acting on what it senses).
+
+    With ``obs_key`` the sensors are noisy (``env.obs(x, key_t)``); the trajectory's ``O`` records
+    what the policy saw, the final observation noise-free.
+    """
+    T = noise.shape[0]
+    check_shape("rollout_observed", "x0", x0, (env.dX,))
+    check_shape("rollout_observed", "noise", noise, (T, env.dU))
+    keys = None if obs_key is None else jax.random.split(obs_key, T)
+
+    def body(x, inputs):
+        eps, k = inputs
+        o = env.obs(x) if k is None else env.obs(x, k)
+        u = act(o, eps)
+        return env.step(x, u), (x, u, o)
+
+    x_final, (X, U, O) = lax.scan(body, x0, (noise, keys))
+    X = jnp.concatenate([X, x_final[None]], axis=0)
+    O = jnp.concatenate([O, env.obs(x_final)[None]], axis=0)
+    return Trajectory(X=X, U=U, O=O)
+
+
+def sample_observed(
+    env: Env,
+    act: Callable[[Array, Array], Array],
+    x0: Array,
+    key: PRNGKey,
+    n_samples: int,
+    horizon: int,
+    *,
+    smooth_sigma: float | None = None,
+    obs_noise: bool = False,
+) -> Trajectory:
+    """``n_samples`` rollouts of :func:`rollout_observed` from one ``x0`` with GPS's (optionally
+    time-smoothed) exploration noise: X [N, T+1, dX], U [N, T, dU], O [N, T+1, dO]."""
+    key_noise, key_obs = jax.random.split(key)
+    noise = jax.vmap(lambda k: smooth_noise(k, horizon, env.dU, smooth_sigma))(
+        jax.random.split(key_noise, n_samples)
+    )
+    obs_keys = jax.random.split(key_obs, n_samples)
+
+    def one(eps, k):
+        return rollout_observed(env, act, x0, eps, obs_key=k if obs_noise else None)
+
+    return jax.vmap(one)(noise, obs_keys)
