@@ -2,6 +2,7 @@
 variance by hand, the autodiff linearisation against finite differences, recovery of a known
 linear controller, jit(vmap) against unbatched runs, and MDGPS learning a policy on a stand-in."""
 
+import dataclasses
 from dataclasses import dataclass
 
 import jax
@@ -206,3 +207,119 @@ def test_mdgps_vmapped_equals_unbatched(on_policy):
         one = single(keys[i])
         for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(batched), strict=True):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b[i]), rtol=1e-9, atol=1e-10)
+
+
+def test_bc_recovers_the_linear_controller_of_its_demos():
+    """Demos of u = Kx + k + ε (ε ~ N(0, 0.1²) per dimension) on the stand-in: a linear policy
+    cloned from their (o, u) pairs has the demonstrator's gains and noise."""
+    from diffgcl.algorithms.bc import BCConfig, make_bc
+
+    env = ObservedPointMass()
+    rng = np.random.default_rng(7)
+    K = np.array([[-2.0, 0.0, -1.5, 0.0], [0.0, -1.0, 0.0, -2.0]])
+    k = np.array([0.3, -0.2])
+    N, T = 40, env.horizon
+    X = np.zeros((N, T + 1, env.dX))
+    U = np.zeros((N, T, env.dU))
+    X[:, 0, :2] = rng.uniform(-2, 2, size=(N, 2))
+    for t in range(T):
+        U[:, t] = X[:, t] @ K.T + k + 0.1 * rng.normal(size=(N, env.dU))
+        X[:, t + 1] = np.asarray(jax.vmap(env.step)(jnp.asarray(X[:, t]), jnp.asarray(U[:, t])))
+    O = jax.vmap(jax.vmap(env.obs))(jnp.asarray(X))
+    mask = np.ones((N, T + 1))
+    mask[0, 5:] = 0.0  # a truncated demo: its padding must not pull the fit
+    U[0, 5:] = 100.0
+    config = BCConfig(
+        network=PolicyConfig(hidden=()),
+        fit=SStepConfig(n_steps=4000, batch_size=128, learning_rate=1e-2),
+    )
+    policy, fit = make_bc(config, env.dO, env.dU, jnp.float64)
+    state, _ = jax.jit(fit)(jax.random.PRNGKey(0), O, jnp.asarray(U), jnp.asarray(mask))
+    x_new = jnp.asarray(X[1:, ::4].reshape(-1, env.dX))  # states the demos visited
+    got = np.asarray(jax.vmap(lambda x: policy.mean_action(state.params, env.obs(x)))(x_new))
+    # The reference: ordinary least squares of u on [o, 1] over the valid steps.
+    valid = mask[:, :T].reshape(-1) > 0
+    A = np.concatenate([np.asarray(O[:, :T]).reshape(-1, env.dO), np.ones((N * T, 1))], 1)
+    coef, *_ = np.linalg.lstsq(A[valid], U.reshape(-1, env.dU)[valid], rcond=None)
+    O_new = np.asarray(jax.vmap(env.obs)(x_new))
+    ols = np.concatenate([O_new, np.ones((len(O_new), 1))], 1) @ coef
+    np.testing.assert_allclose(got, ols, atol=1e-2)
+    np.testing.assert_allclose(got, np.asarray(x_new) @ K.T + k, atol=0.1)  # the demonstrator
+    resid = U.reshape(-1, env.dU)[valid] - A[valid] @ coef
+    np.testing.assert_allclose(np.asarray(state.params.var), resid.var(0), rtol=1e-2)
+    np.testing.assert_allclose(np.asarray(state.params.var), [0.01, 0.01], rtol=0.2)
+
+
+@pytest.fixture(scope="module")
+def observed_demos():
+    """GPS expert demos (4 per condition) on the observed stand-in."""
+    from diffgcl.algorithms.expert import make_demo_set, sample_expert
+    from diffgcl.algorithms.gps import make_gps
+    from diffgcl.algorithms.rgcl import demo_batch
+
+    env = ObservedPointMass()
+    gps = make_gps(GPSConfig(iterations=8, init_var=1.0, kl_step=1.0), env, env.expert_cost)
+    state, metrics = jax.jit(gps.train)(jax.random.PRNGKey(0))
+    assert bool(metrics.success[-1].all())
+    traj, cond = sample_expert(
+        env, state.controller, env.initial_states(), jax.random.PRNGKey(1), 8, smooth_sigma=None
+    )
+    demos = make_demo_set(env, traj, np.asarray(cond), cost=env.expert_cost)
+    return env, demo_batch(demos, 2)
+
+
+def rgcl_policy_config(schedule: str, **changes):
+    from diffgcl.algorithms.rgcl import RGCLConfig
+    from diffgcl.costs.gcl import GCLConfig
+    from diffgcl.costs.network import CostNetworkConfig
+
+    return RGCLConfig(
+        schedule=schedule,
+        iterations=changes.pop("iterations", 8 if schedule == "v2" else 4),
+        gps_per_update=2,
+        gps=GPSConfig(num_samples=5, kl_step=1.0, init_var=1.0, gauss_newton=True, maxent=True),
+        network=CostNetworkConfig(hidden=(), n_features=8, action_weight=1e-2),
+        gcl=GCLConfig(n_steps=10, pretrain_steps=50, learning_rate=1e-2, goal_weight=1.0),
+        buffer_controllers=6,
+        freeze_last=1,
+        policy=PolicySettings(
+            network=PolicyConfig(hidden=(32, 32), init_var=1.0),
+            s_step=SStepConfig(n_steps=300, learning_rate=3e-3),
+            **changes,
+        ),
+    )
+
+
+def test_rgcl_v2_with_a_policy_learns_from_demos(observed_demos):
+    """rGCL v2 with MDGPS on the stand-in: the global policy trained on the learned cost reaches
+    the target from both training starts, noise-free."""
+    from diffgcl.algorithms.rgcl import make_train
+
+    env, demos = observed_demos
+    rgcl = make_train(rgcl_policy_config("v2"), env)
+    state, m = jax.jit(rgcl.train)(jax.random.PRNGKey(2), demos)
+    assert m.policy.success.shape == (8, 1, 2)
+    assert bool(m.policy.success[-1, -1].all()), np.asarray(m.policy.success[:, -1])
+    assert not bool(m.rolled_back.any())
+    assert int(state.policy.step) == 8 * 300
+    assert state.policy.params.var.shape == (env.dU,)
+
+
+@pytest.mark.parametrize("on_policy", [pytest.param(False, marks=pytest.mark.slow), True])
+def test_rgcl_v1_with_a_policy_vmapped_equals_unbatched(observed_demos, on_policy):
+    from diffgcl.algorithms.rgcl import make_train
+
+    env, demos = observed_demos
+    config = rgcl_policy_config("v1", iterations=2, sample_on_policy=on_policy)
+    config = dataclasses.replace(
+        config,
+        policy=dataclasses.replace(config.policy, s_step=SStepConfig(n_steps=10)),
+        gcl=dataclasses.replace(config.gcl, pretrain_steps=5, n_steps=3),
+    )
+    rgcl = make_train(config, env)
+    keys = jnp.stack([jax.random.PRNGKey(s) for s in (5, 6)])
+    batched = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None)))(keys, demos)
+    for i in range(2):
+        one = jax.jit(rgcl.train)(keys[i], demos)
+        for a, b in zip(jax.tree.leaves(one), jax.tree.leaves(batched), strict=True):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b[i]), rtol=1e-8, atol=1e-9)

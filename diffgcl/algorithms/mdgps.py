@@ -129,7 +129,7 @@ def make_policy_phases(
     ``env.expert_cost``) is reported for the policy's rollouts; ``x0``: training conditions [C, dX]
     (default ``env.initial_states()``)."""
     from diffgcl.control.init import init_controller
-    from diffgcl.sim.rollout import rollout_observed
+    from diffgcl.eval.policy import policy_rollouts
 
     policy = make_policy(settings, env)
     learner = make_policy_learner(policy, settings.s_step)
@@ -186,8 +186,7 @@ def make_policy_phases(
         return learner.s_step(state, key, flat(O[:, :, :-1], 3), flat(mu, 3), flat(prec, 3))
 
     def rollouts(state: PolicyState, x0: Array) -> Trajectory:
-        noise = jnp.zeros((T, dU), x0.dtype)
-        return jax.vmap(lambda x: rollout_observed(env, act(state.params), x, noise))(x0)
+        return policy_rollouts(env, policy, state.params, x0)
 
     def metrics(state: PolicyState, s_metrics: SStepMetrics) -> PolicyMetrics:
         traj = rollouts(state, X0)

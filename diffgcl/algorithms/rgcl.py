@@ -36,6 +36,15 @@ variance, cost learning rate — all traced) is a sweep. The same iteration is e
 with checkpoints; the per-iteration keys are ``fold_in(key_loop, step)``, so a chunked run equals
 an uninterrupted one.
 
+Global policy (``RGCLConfig.policy``, DESIGN §6; MDGPS, :mod:`diffgcl.algorithms.mdgps`): every
+GPS iteration then linearises the policy around its samples, uses that linearisation as the
+C-step's KL anchor and as the controller the (shared) step rule judges, and ends with the S-step
+onto the new controllers. v2 runs the S-step after its inner loop, v1 after each of its GPS
+iterations. With ``sample_on_policy`` the samples come from the policy and the fusion buffer
+records the policy's linearisation at them as their proposal (an approximation of the policy's
+density, exact for a policy linear in the state). The policy's observation normaliser is fitted
+once from the demonstrations' observations.
+
 NaN guard (pure, per run): when an iteration turns a finite value anywhere in the state into a
 non-finite one, the iteration is rolled back (the previous state is kept,
 ``metrics.rolled_back`` is set) and the next step tries again with a fresh key.
@@ -63,6 +72,12 @@ from diffgcl.algorithms.gps import (
     GPSState,
     make_gps_phases,
 )
+from diffgcl.algorithms.mdgps import (
+    PolicyMetrics,
+    PolicySettings,
+    make_policy_phases,
+    policy_iteration_samples,
+)
 from diffgcl.costs.buffer import SampleBuffer, buffer_add, init_buffer
 from diffgcl.costs.demo_controller import fit_demo_controller
 from diffgcl.costs.gcl import (
@@ -82,6 +97,7 @@ from diffgcl.costs.network import (
     init_normaliser,
     update_normaliser,
 )
+from diffgcl.policies.mdgps import PolicyState
 from diffgcl.sim.rollout import rollout_controller, sample_controller
 from diffgcl.types import Array, Env, LinearGaussianController, PRNGKey
 
@@ -104,7 +120,9 @@ class RGCLConfig:
     skip the cost update (GPS polishes on a fixed cost); late_max_step_mult /
     late_iterations: cap on step_mult over the last ``late_iterations`` iterations (a late KL cap;
     None: off); nan_guard: roll back iterations that produce non-finite values;
-    reopt_iterations: GPS iterations of the re-optimisation check.
+    reopt_iterations: GPS iterations of the re-optimisation check; policy: a global policy on the
+    env's observations trained by MDGPS alongside (:class:`PolicySettings`; None: local
+    controllers only).
     """
 
     schedule: str = "v2"
@@ -123,6 +141,7 @@ class RGCLConfig:
     late_iterations: int = 0
     nan_guard: bool = True
     reopt_iterations: int = 30
+    policy: PolicySettings | None = None
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -181,7 +200,8 @@ class RGCLState:
     gps: :class:`GPSState` (fields [C, ...]); cost: :class:`CostState`; buffer: fusion
     :class:`SampleBuffer` with a leading [C] axis; iteration: int32, rGCL iterations
     accepted; step: int32, iterations attempted (keys are ``fold_in(key_loop, step)``; differs
-    from ``iteration`` after a rollback).
+    from ``iteration`` after a rollback); policy: the global policy's :class:`PolicyState` (None
+    without ``config.policy``).
     """
 
     gps: GPSState
@@ -189,6 +209,7 @@ class RGCLState:
     buffer: SampleBuffer
     iteration: Array
     step: Array
+    policy: PolicyState | None = None
 
 
 @struct.dataclass
@@ -199,7 +220,8 @@ class RGCLMetrics:
     [G, C] mean learned trajectory cost of the GPS samples; gcl: :class:`GCLMetrics` averaged over
     the update's gradient steps (scalars; zeros on frozen iterations); cost_updated: bool;
     rolled_back: bool, the NaN guard rejected this iteration; sample_X: [G, C, N, T+1, dX] the
-    GPS samples (for the motion plots).
+    GPS samples (for the motion plots); policy: :class:`PolicyMetrics` with fields [G, ...] after
+    each S-step (None without a policy).
     """
 
     gps: GPSMetrics
@@ -208,6 +230,7 @@ class RGCLMetrics:
     gcl: GCLMetrics
     cost_updated: Array
     rolled_back: Array
+    policy: PolicyMetrics | None = None
 
 
 class RGCL(NamedTuple):
@@ -216,7 +239,8 @@ class RGCL(NamedTuple):
     train(key, demos, hparams=None) -> (RGCLState, RGCLMetrics [iterations]);
     split_key(key) -> (key_init, key_loop); init(key_init, demos, hparams=None) -> RGCLState
     (with pre-training); run(state, key_loop, demos, n) -> (state, metrics [n]) (``n`` static);
-    default_hparams() -> RGCLHyperparams; network: the :class:`CostNetwork`.
+    default_hparams() -> RGCLHyperparams; network: the :class:`CostNetwork`; policy_phases: the
+    global policy's :class:`~diffgcl.algorithms.mdgps.PolicyPhases` (None without a policy).
     """
 
     train: Callable[..., tuple[RGCLState, RGCLMetrics]]
@@ -225,6 +249,7 @@ class RGCL(NamedTuple):
     run: Callable[..., tuple[RGCLState, RGCLMetrics]]
     default_hparams: Callable[[], RGCLHyperparams]
     network: CostNetwork
+    policy_phases: object = None
 
 
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
@@ -252,6 +277,12 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     N = gps_config.num_samples
     G = config.gps_per_iteration
     gcl_cfg = config.gcl
+    settings = config.policy
+    policy_phases = (
+        None
+        if settings is None
+        else make_policy_phases(settings, gps_config, env, true_cost=env.expert_cost)
+    )
 
     def default_hparams() -> RGCLHyperparams:
         return RGCLHyperparams(
@@ -350,12 +381,18 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
                 pre_buffer = jax.vmap(buffer_add)(buffer, gps.controller, samples.X, samples.U)
             samples_w, demos_w = weighted_sets(pre_buffer, demos, key_samples)
             cost, _ = optimise(cost, key_pretrain, demos_w, samples_w, gcl_cfg.pretrain_steps)
+        policy = None
+        if policy_phases is not None:
+            # The observation normaliser comes from what the demonstrator's sensors would show.
+            key_policy, key_obs = jax.random.split(jax.random.fold_in(key, 1))
+            policy = policy_phases.init(key_policy, policy_phases.observe(demos.X, key_obs))
         return RGCLState(
             gps=gps,
             cost=cost,
             buffer=buffer,
             iteration=jnp.zeros((), jnp.int32),
             step=jnp.zeros((), jnp.int32),
+            policy=policy,
         )
 
     # ---- one rGCL iteration ------------------------------------------------------------------
@@ -376,19 +413,42 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         metrics = jax.tree.map(lambda m: jnp.where(update, m, 0.0), metrics)
         return new, metrics, update
 
+    # ---- the global policy's part of a GPS iteration (no-ops without a policy) ----------------
+
+    def draw_samples(gps: GPSState, policy, key: PRNGKey):
+        """(samples with fitted dynamics, the KL anchor or None, the samples' proposal)."""
+        if policy_phases is None:
+            return phases.outer(gps, key), None, gps.controller
+        samples = policy_iteration_samples(phases, policy_phases, settings, gps, policy, key)
+        anchor = policy_phases.linearise(policy, samples.X)
+        return samples, anchor, anchor if settings.sample_on_policy else gps.controller
+
+    def adapt(state: RGCLState, gps: GPSState, samples, quad, anchor) -> Array:
+        step = phases.adapt_step(gps, samples, quad, current=anchor, shared=anchor is not None)
+        return cap_step(state, step)
+
+    def s_step(policy, key: PRNGKey, samples: GPSSamples, gps: GPSState):
+        if policy_phases is None:
+            return None, None
+        key_obs, key_fit = jax.random.split(key)
+        O = policy_phases.observe(samples.X, key_obs)
+        policy, s_metrics = policy_phases.s_step(policy, key_fit, samples.X, O, gps.controller)
+        return policy, policy_phases.metrics(policy, s_metrics)
+
     def iteration_v2(state: RGCLState, key: PRNGKey, demos: DemoBatch):
-        key_outer, key_cost = jax.random.split(key)
+        key_outer, key_cost, key_policy = jax.random.split(key, 3)
         gps = state.gps
-        samples = phases.outer(gps, key_outer)
+        samples, anchor, proposal = draw_samples(gps, state.policy, key_outer)
         # The step is judged with the cost the current controller was optimised for.
         quad_prev = phases.expand(residual(state.cost.params), samples)
-        step_mult = cap_step(state, phases.adapt_step(gps, samples, quad_prev))
-        buffer = jax.vmap(buffer_add)(state.buffer, gps.controller, samples.X, samples.U)
+        step_mult = adapt(state, gps, samples, quad_prev, anchor)
+        buffer = jax.vmap(buffer_add)(state.buffer, proposal, samples.X, samples.U)
         cost, gcl_metrics, updated = cost_step(
-            state, state.cost, key_cost, demos, samples, gps.controller, buffer
+            state, state.cost, key_cost, demos, samples, proposal, buffer
         )
         quad = phases.expand(residual(cost.params), samples)
-        gps, gps_metrics = phases.inner(gps, samples, quad, step_mult)
+        gps, gps_metrics = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
+        policy, policy_metrics = s_step(state.policy, key_policy, samples, gps)
         metrics = RGCLMetrics(
             gps=jax.tree.map(lambda a: a[None], gps_metrics),
             learned_cost=learned_cost(cost.params, samples)[None],
@@ -396,32 +456,37 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             gcl=gcl_metrics,
             cost_updated=updated,
             rolled_back=jnp.zeros((), bool),
+            policy=jax.tree.map(lambda a: a[None], policy_metrics),
         )
-        return state.replace(gps=gps, cost=cost, buffer=buffer), metrics
+        return state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy), metrics
 
     def iteration_v1(state: RGCLState, key: PRNGKey, demos: DemoBatch):
         key_gps, key_cost = jax.random.split(key)
         params = state.cost.params
 
         def gps_iteration(carry, key):
-            gps, buffer, _ = carry
-            samples = phases.outer(gps, key)
+            gps, policy, buffer, _, _ = carry
+            key_sample, key_policy = jax.random.split(key)
+            samples, anchor, proposal = draw_samples(gps, policy, key_sample)
             quad = phases.expand(residual(params), samples)
-            step_mult = cap_step(state, phases.adapt_step(gps, samples, quad))
-            buffer = jax.vmap(buffer_add)(buffer, gps.controller, samples.X, samples.U)
-            new_gps, m = phases.inner(gps, samples, quad, step_mult)
-            return (new_gps, buffer, samples), (m, learned_cost(params, samples), samples.X)
+            step_mult = adapt(state, gps, samples, quad, anchor)
+            buffer = jax.vmap(buffer_add)(buffer, proposal, samples.X, samples.U)
+            new_gps, m = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
+            policy, pm = s_step(policy, key_policy, samples, new_gps)
+            out = (m, learned_cost(params, samples), samples.X, pm)
+            return (new_gps, policy, buffer, samples, proposal), out
 
         empty = jax.tree.map(
             lambda s: jnp.zeros(s.shape, s.dtype),
             jax.eval_shape(lambda: phases.outer(state.gps, key_gps)),
         )
-        (gps, buffer, samples), (gps_metrics, lc, sample_X) = lax.scan(
-            gps_iteration, (state.gps, state.buffer, empty), jax.random.split(key_gps, G)
+        carry = (state.gps, state.policy, state.buffer, empty, state.gps.controller)
+        (gps, policy, buffer, samples, proposal), (gps_metrics, lc, sample_X, pm) = lax.scan(
+            gps_iteration, carry, jax.random.split(key_gps, G)
         )
         # The model variant generates from the last fitted model and the controller it sampled.
         cost, gcl_metrics, updated = cost_step(
-            state, state.cost, key_cost, demos, samples, gps.prev_controller, buffer
+            state, state.cost, key_cost, demos, samples, proposal, buffer
         )
         metrics = RGCLMetrics(
             gps=gps_metrics,
@@ -430,8 +495,9 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             gcl=gcl_metrics,
             cost_updated=updated,
             rolled_back=jnp.zeros((), bool),
+            policy=pm,
         )
-        return state.replace(gps=gps, cost=cost, buffer=buffer), metrics
+        return state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy), metrics
 
     one_iteration = iteration_v1 if config.schedule == "v1" else iteration_v2
 
@@ -471,6 +537,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         run=run,
         default_hparams=default_hparams,
         network=network,
+        policy_phases=policy_phases,
     )
 
 

@@ -374,8 +374,24 @@ def config_from_dict(d: dict):
         gps=GPSConfig(**d.pop("gps")),
         network=CostNetworkConfig(**net),
         gcl=GCLConfig(**d.pop("gcl")),
+        policy=policy_settings_from_dict(d.pop("policy", None)),
         **d,
     )
+
+
+def policy_settings_from_dict(d: dict | None):
+    """Inverse of ``dataclasses.asdict`` of a :class:`~diffgcl.algorithms.mdgps.PolicySettings`
+    (None stays None)."""
+    if d is None:
+        return None
+    from diffgcl.algorithms.mdgps import PolicySettings
+    from diffgcl.policies.mdgps import SStepConfig
+    from diffgcl.policies.network import PolicyConfig
+
+    d = dict(d)
+    net = dict(d.pop("network"))
+    net["hidden"] = tuple(net["hidden"])
+    return PolicySettings(network=PolicyConfig(**net), s_step=SStepConfig(**d.pop("s_step")), **d)
 
 
 def load_run(run_dir: Path, env):

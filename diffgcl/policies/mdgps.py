@@ -155,11 +155,14 @@ class PolicyLearner(NamedTuple):
     optimiser: optax.GradientTransformation
 
 
-def make_policy_learner(policy: GaussianPolicy, config: SStepConfig) -> PolicyLearner:
-    """Build the S-step of ``policy`` (see the module docstring)."""
-    optimiser = optax.chain(
-        optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.learning_rate)
-    )
+def make_policy_learner(
+    policy: GaussianPolicy, config: SStepConfig, learning_rate=None
+) -> PolicyLearner:
+    """Build the S-step of ``policy`` (see the module docstring). ``learning_rate``: an optax
+    schedule in place of the constant ``config.learning_rate`` (counted in Adam steps over the
+    learner's whole life, so meant for a one-shot fit such as behaviour cloning)."""
+    lr = config.learning_rate if learning_rate is None else learning_rate
+    optimiser = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(lr))
 
     def init(params: PolicyParams) -> PolicyState:
         return PolicyState(
