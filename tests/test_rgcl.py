@@ -211,7 +211,12 @@ def test_cli_train_eval_plot_on_stand_in(slider, tmp_path, monkeypatch):
 
     env, demos = slider
     monkeypatch.setattr(diffgcl.envs, "make_env", lambda name, **kw: env)
-    monkeypatch.setattr(rgcl_cli, "load_demo_batch", lambda path, env: demos)
+    from diffgcl.algorithms import runner
+
+    # Both readers (the command's and load_run's): the built-in arm demos must never be
+    # generated for the stand-in (they would be cached under the arm's name).
+    for module in (rgcl_cli, runner):
+        monkeypatch.setattr(module, "load_demo_batch", lambda path, env: demos)
     monkeypatch.setitem(presets.PRESETS, "tiny", lambda: tiny_config("v2", iterations=3))
     parser = argparse.ArgumentParser()
     rgcl_cli.register(parser.add_subparsers(dest="command"))
