@@ -39,7 +39,7 @@ import subprocess
 import sys
 import threading
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import NoReturn
 
@@ -449,13 +449,18 @@ def without_options(argv: Sequence[str], names: Sequence[str]) -> list[str]:
     return out
 
 
-def launch_or_join(args, program: Sequence[str], argv: Sequence[str]) -> int | None:
-    """With ``--local-processes N``: run ``program + argv`` (less the launcher's options) as N
-    processes on this host and return their exit status (:func:`launch_local`). Otherwise join
-    the multi-process run that the options or the environment describe, if any, and return
-    None. Bad settings end the program with a one-line message."""
+def launch_or_join(
+    args, program: Sequence[str], argv: Sequence[str], prepare: Callable[[], object] | None = None
+) -> int | None:
+    """With ``--local-processes N``: call ``prepare`` here (one-process work the processes need
+    done first, e.g. generating cached demos), then run ``program + argv`` (less the launcher's
+    options) as N processes on this host and return their exit status (:func:`launch_local`).
+    Otherwise join the multi-process run that the options or the environment describe, if any,
+    and return None. Bad settings end the program with a one-line message."""
     try:
         if args.local_processes is not None:
+            if prepare is not None:
+                prepare()
             command = [*program, *without_options(argv, LAUNCHER_OPTIONS)]
             return launch_local(
                 command,

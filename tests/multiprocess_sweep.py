@@ -55,7 +55,17 @@ def main() -> int:
         from diffgcl.algorithms.runner import SimulatedCrash, train_seeds
 
         try:
-            train_seeds(config, Slider(), demos, [0, 1], out=args.run_dir, chunk=1, crash_after=2)
+            train_seeds(
+                config,
+                Slider(),
+                demos,
+                [0, 1],
+                out=args.run_dir,
+                chunk=1,
+                checkpoint_every=1,
+                crash_after=2,
+                progress=False,
+            )
         except SimulatedCrash:
             pass
         result = train_seeds(

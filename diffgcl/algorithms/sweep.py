@@ -34,7 +34,7 @@ from diffgcl.algorithms.rgcl import (
     final_rollouts,
     make_train,
 )
-from diffgcl.distributed import check_same_everywhere, to_host
+from diffgcl.distributed import barrier, check_same_everywhere, to_host
 from diffgcl.sim.sharding import batch_mesh, shard_batch, vmap_over_devices
 from diffgcl.types import Array
 
@@ -84,8 +84,9 @@ class SweepResult:
 
     outcome: :class:`Outcome` [runs]; state / metrics: every run's final RGCLState and
     RGCLMetrics [runs, ...] when asked for (``keep_states``), else None; compile_seconds:
-    lowering + compilation of the chunk program; run_seconds: the chunks after compilation
-    (gathers included); processes, devices: the layout it ran on.
+    lowering + compilation of the chunk program (this process's); run_seconds: the chunks after
+    every process has compiled, gathers included; processes, devices: the layout it ran on;
+    chunk: runs per chunk.
     """
 
     grid: dict[str, tuple[float, ...]]
@@ -179,6 +180,7 @@ def run_sweep(
     k0, h0 = batch(0)
     compiled = program.lower(k0, demos, h0).compile()
     compile_seconds = time.perf_counter() - t0
+    barrier("sweep compiled")  # time the runs, not another process's compilation
     parts = []
     t0 = time.perf_counter()
     for i in range(0, len(runs), size):

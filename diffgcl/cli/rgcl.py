@@ -57,9 +57,14 @@ def _launch_or_join(args) -> int | None:
     """``--local-processes``: the launched processes' exit status; else None after joining the
     multi-process run the options or the environment describe (if any)."""
     from diffgcl.distributed import launch_or_join
+    from diffgcl.envs import make_env
+
+    def prepare():  # the built-in demos are generated (and cached) by one process, here
+        _setup(args)
+        load_demo_batch(args.demos, make_env("arm"))
 
     program = [sys.executable, "-m", "diffgcl.cli"]
-    return launch_or_join(args, program, getattr(args, "argv", sys.argv[1:]))
+    return launch_or_join(args, program, getattr(args, "argv", sys.argv[1:]), prepare)
 
 
 def _add_common(p: argparse.ArgumentParser, seeds: int = 4) -> None:
