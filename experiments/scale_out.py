@@ -16,8 +16,8 @@ final distance and final true cost are bitwise equal in the two layouts (each de
 same program on the same runs). With ``--repeats N`` the layouts alternate N times and each
 figure is the best of N. On CPU, process 1 compiles afresh in every run (JAX's persistent
 cache is written by process 0 only and its keys differ per process), which the wall time shows
-and the run time does not. ``load_average`` (1 min, before and after) says how busy the machine
-was: the figures are only comparable on a quiet one.
+and the run time does not; ``*_each`` lists every repeat. ``load_average`` (1 min, before and
+after) says how busy the machine was: the figures are only comparable on a quiet one.
 
     python experiments/scale_out.py --json PATH [--seeds 32] [--repeats 1] [--fast] [--x64]
 """
@@ -89,6 +89,7 @@ def main(argv=None) -> int:
                     ("run_seconds", s["run_seconds"]),
                 ):
                     b[key] = min(b.get(key, float("inf")), value)
+                    b.setdefault(f"{key}_each", []).append(value)
                 b.update(processes=s["processes"], devices=s["devices"], chunk=s["chunk"])
                 if b["runs"] != s["runs"]:
                     raise SystemExit(f"scale_out: {name} gave different outcomes on repeat")

@@ -137,6 +137,47 @@ def test_launcher_starts_processes_and_reports_the_first_to_fail(capfd):
     assert "took longer than 2 s; the launcher stopped process(es) [0]" in last
 
 
+# ---- the sweep in one process --------------------------------------------------------------------
+
+
+def test_sweep_pads_its_last_chunk_and_scores_every_run(demos_file):
+    """run_sweep over 2 learning rates × 2 seeds in chunks of 3 (the second padded with a copy of
+    the last run) against each run of jit(train) on its own, scored by run_outcome."""
+    from test_rgcl import Slider, tiny_config
+
+    from diffgcl.algorithms.rgcl import make_train
+    from diffgcl.algorithms.sweep import parse_grid, run_outcome, run_sweep
+
+    env, config = Slider(), tiny_config("v2", iterations=2)
+    demos = pickle.loads(Path(demos_file).read_bytes())
+    grid = parse_grid(["cost_lr=1e-2,3e-3"])
+    result = run_sweep(config, env, demos, [4, 5], grid, chunk=3, keep_states=True)
+    assert result.chunk == 3 and result.processes == 1 and len(result.points) == 2
+    assert result.outcome.success.shape == (4,) and result.state.iteration.shape == (4,)
+    rgcl = make_train(config, env)
+    single = jax.jit(rgcl.train)
+    score = jax.jit(lambda state, metrics: run_outcome(env, state, metrics))
+    for i, (lr, seed) in enumerate([(1e-2, 4), (1e-2, 5), (3e-3, 4), (3e-3, 5)]):
+        hp = rgcl.default_hparams().replace(cost_lr=jax.numpy.asarray(lr))
+        state, metrics = single(jax.random.PRNGKey(seed), demos, hp)
+        np.testing.assert_allclose(result.state.gps.controller.K[i], state.gps.controller.K)
+        expected = score(state, metrics)
+        for name in ("success", "final_distance", "final_true_cost"):
+            got, want = getattr(result.outcome, name)[i], np.asarray(getattr(expected, name))
+            np.testing.assert_allclose(got, want, rtol=1e-9, err_msg=name)
+    # The score by hand: the final controllers' noise-free rollout, worst condition.
+    from diffgcl.algorithms.rgcl import final_rollouts
+
+    X = np.asarray(final_rollouts(env, jax.tree.map(lambda a: a[3], result.state.gps.controller)))
+    np.testing.assert_allclose(result.outcome.final_distance[3], np.abs(X[:, -1, :2]).max())
+    assert result.outcome.success[3] == bool(np.all(np.abs(X[:, -3:, :2]) < 0.15))
+    rows = result.table()
+    assert [r["cost_lr"] for r in rows] == [1e-2, 3e-3]
+    assert rows[1]["success_rate"] == result.outcome.success[2:].mean()
+    summary = result.to_dict()
+    assert [r["seed"] for r in summary["runs"]] == [4, 5, 4, 5]
+
+
 # ---- a sweep over two processes -----------------------------------------------------------------
 
 
