@@ -211,6 +211,9 @@ def _lost(err: Exception, doing: str) -> ProcessLost:
     return ProcessLost(f"{doing} failed, another process of the run has stopped ({first})")
 
 
+_barriers: dict[str, int] = {}  # how often each barrier was passed (ids must not repeat)
+
+
 def barrier(name: str, timeout_s: float = 3600.0) -> None:
     """Wait until every process reaches the barrier ``name`` (e.g. until process 0 has written
     the run folder, so that no process shuts down while another still works); free in a
@@ -219,7 +222,12 @@ def barrier(name: str, timeout_s: float = 3600.0) -> None:
         return
     from jax._src import distributed as jax_distributed  # the client JAX's runtime connected
 
-    jax_distributed.global_state.client.wait_at_barrier(f"diffgcl:{name}", int(1000 * timeout_s))
+    client = jax_distributed.global_state.client
+    _barriers[name] = _barriers.get(name, 0) + 1
+    try:
+        client.wait_at_barrier(f"diffgcl:{name}:{_barriers[name]}", int(1000 * timeout_s))
+    except jax.errors.JaxRuntimeError as err:
+        raise _lost(err, f"waiting for every process ({name})") from None
 
 
 def _identity(*leaves):
@@ -237,6 +245,7 @@ def to_host(tree):
     if not split:
         return jax.tree.unflatten(treedef, [np.asarray(a) for a in leaves])
     whole = tuple(NamedSharding(leaves[i].sharding.mesh, PartitionSpec()) for i in split)
+    barrier("gather")  # see check_same_everywhere
     try:
         gathered = jax.jit(_identity, out_shardings=whole)(*(leaves[i] for i in split))
         for i, a in zip(split, gathered, strict=True):
@@ -271,6 +280,10 @@ def check_same_everywhere(
         return
     from jax.experimental import multihost_utils
 
+    # Arrive together: gloo gives the processes 30 s to meet at a communicator's first use
+    # (measured: "Gloo context initialization failed: DEADLINE_EXCEEDED ... 29.99s" when one
+    # process built its env that much later on a busy host); the barrier has no such limit.
+    barrier(f"compare {what}")
     try:
         digests = np.asarray(multihost_utils.process_allgather(_digest(value)))
     except jax.errors.JaxRuntimeError as err:

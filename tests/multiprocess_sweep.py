@@ -7,9 +7,11 @@ the processes :func:`diffgcl.distributed.launch_local` starts).
 
 ``sweep``: 2 learning rates × 3 seeds in chunks of 4 (the last one padded); process 0 writes every
 leaf of the gathered result (outcome, final states, metrics) to OUT.npz. ``--kill-process I``:
-process I kills itself (SIGKILL) once the first chunk is gathered, leaving the others in the
-second chunk's all-gather. ``train``: the host runner over 2 seeds, crashed after 2 of 3
-iterations (checkpoint every iteration) and resumed; OUT.npz holds the resumed state and metrics.
+process I kills itself (SIGKILL) once the processes have agreed on the settings and demos, while
+the others go on to compile and run their first chunk (it does not compile: process 1 cannot
+use the persistent compilation cache, and the test stays short). ``train``: the host runner over
+2 seeds, crashed after 2 of 3 iterations (checkpoint every iteration) and resumed; OUT.npz holds
+the resumed state and metrics.
 """
 
 from __future__ import annotations
@@ -75,14 +77,14 @@ def main() -> int:
         tree = (result.state, result.metrics)
     else:
         if args.kill_process == jax.process_index():
-            gather = sweep.to_host
+            check = sweep.check_same_everywhere
 
-            def gather_then_die(tree):
-                out = gather(tree)
-                os.kill(os.getpid(), signal.SIGKILL)
-                return out
+            def check_then_die(what, value):
+                check(what, value)
+                if what == "demos":  # the last check before the sweep compiles and runs
+                    os.kill(os.getpid(), signal.SIGKILL)
 
-            sweep.to_host = gather_then_die
+            sweep.check_same_everywhere = check_then_die
         try:
             result = sweep.run_sweep(
                 config,
