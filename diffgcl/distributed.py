@@ -22,10 +22,13 @@ Settings (:func:`process_settings`), first found wins, field by field:
 A count of one, or no settings at all, is a plain one-process run: nothing is started.
 
 Failure: every process sends heartbeats to the coordination service that process 0 hosts. When a
-process stops (killed, out of memory, machine lost), the service aborts every other process
-after ``heartbeat_timeout_s`` (measured: 10 s setting, the survivor aborted 10 s after the kill),
-so a run with a dead process fails rather than waiting forever inside an all-gather.
-:func:`launch_local` starts N processes on this machine and turns their ends into one line.
+process stops (killed, out of memory, machine lost), the service fails every other process after
+``heartbeat_timeout_s`` (measured with 10 s: the survivor aborted 10 s after the kill), so a run
+with a dead process fails rather than waiting forever. Before each collective the processes meet
+at a :func:`barrier` of that service (gloo alone allows 30 s to meet at a communicator's first
+use); a failed barrier or all-gather is a :class:`ProcessLost` with one line, which
+:func:`abandon` reports. :func:`launch_local` starts N processes on this machine and turns their
+ends into one line.
 """
 
 from __future__ import annotations
