@@ -341,8 +341,9 @@ def launch_local(
     shared out, at least one). Process 0's output passes through; the others' is prefixed
     ``[process i]`` on stderr. When a process fails, the others get ``grace_s`` seconds to end
     (the distributed service aborts them after its heartbeat timeout) before the launcher stops
-    them; ``timeout_s`` bounds the whole run. Returns 0 when every process exited with 0, else 1
-    after one line on stderr saying which process ended first and how.
+    them; ``timeout_s`` bounds the whole run. Returns process 0's exit status when every other
+    process exited with 0 (the command's own status), else 1 after one line on stderr saying
+    which process ended first and how.
     """
     if num_processes < 1:
         raise ValueError(f"--local-processes {num_processes}: must be at least 1")
@@ -398,6 +399,9 @@ def launch_local(
                 p.wait()
         for t in threads:
             t.join(timeout=5)
+    codes = {i: code for i, (_, code) in ended.items()}
+    if not stopped and all(codes[i] == 0 for i in codes if i > 0) and codes[0] > 0:
+        return codes[0]  # every process finished; process 0's status is the command's
     if first_failure is None:
         if not stopped:
             return 0

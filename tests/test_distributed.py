@@ -115,6 +115,8 @@ if sys.argv[1] == "kill" and i == 1:
     os.kill(os.getpid(), signal.SIGKILL)
 if sys.argv[1] in ("kill", "hang") and i == 0:
     time.sleep(600)
+if sys.argv[1] == "status":
+    sys.exit(3 if i == 0 else 0)
 """
 
 
@@ -131,6 +133,10 @@ def test_launcher_starts_processes_and_reports_the_first_to_fail(capfd):
     last = capfd.readouterr().err.strip().splitlines()[-1]
     assert last.startswith("diffgcl: the 2-process run failed: process 1 ended first")
     assert "(killed by SIGKILL); process 0 stopped by the launcher 1 s later" in last
+
+    # Every process finished and process 0 says e.g. "no seed succeeded": its status, no message.
+    assert launch_local([sys.executable, "-c", CHILD, "status"], 2) == 3
+    assert "diffgcl:" not in capfd.readouterr().err
 
     assert launch_local([sys.executable, "-c", CHILD, "hang"], 2, timeout_s=2.0) == 1
     last = capfd.readouterr().err.strip().splitlines()[-1]
