@@ -30,7 +30,7 @@ SCRIPT = textwrap.dedent(
     try:
         shard_batch(jnp.zeros(3))
     except ValueError as err:
-        assert "not divisible by 2 devices" in str(err)
+        assert "a batch of 3 does not divide over the 2 devices" in str(err), err
     else:
         raise AssertionError("odd batch accepted")
     from diffgcl.sim.sharding import shard_batch_if_even

@@ -16,6 +16,17 @@ too, but this state is a few MB of arrays in one process: a single atomic ``.npz
 are restored into the tree structure of ``jax.eval_shape(init)`` needs no async machinery, no
 version coupling and reads back with NumPy alone.
 
+Several processes (:mod:`diffgcl.distributed`): the seeds are split over the devices of every
+process, and after each chunk the metrics and the state are all-gathered, so every process holds
+the whole run on the host; process 0 alone writes the one ``checkpoint.npz``, the same file as a
+one-process run. Not per-process files: those would tie a resume to the same number of processes
+and the same split, and ``eval`` / ``plot`` / :func:`load_run` would need to stitch them. Not
+orbax's multi-host checkpointing: it exists for states too large for one host (each process
+writes its shards, asynchronously), while a few MB per seed gathers in milliseconds; it needs a
+shared filesystem just the same. A resume on several machines therefore needs the run folder on
+a filesystem they share (or a copy on each): every process reads the checkpoint, and a process
+that finds a different one (or none) stops the run with an error rather than diverging.
+
 NaN guard: the core rolls back any iteration that makes a finite value of the state non-finite
 (``RGCLMetrics.rolled_back``); this loop reports each one (seed, iteration). Should a chunk still
 return a state with new non-finite values, the loop restores the state before the chunk, reports
@@ -43,6 +54,7 @@ from diffgcl.algorithms.rgcl import (
     RGCLState,
     make_train,
 )
+from diffgcl.distributed import check_same_everywhere, is_leader, to_host
 from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
 CHECKPOINT = "checkpoint.npz"
@@ -154,12 +166,20 @@ def train_seeds(
     """
     seeds = [int(s) for s in seeds]
     S = len(seeds)
+    if jax.process_count() > 1 and S % jax.device_count():
+        raise ValueError(
+            f"{S} seeds do not divide over the {jax.device_count()} devices of "
+            f"{jax.process_count()} processes"
+        )
     rgcl = make_train(config, env)
     if hparams is None:
         hp = rgcl.default_hparams()
         hparams = jax.tree.map(lambda a: jnp.broadcast_to(a, (S,)), hp)
     keys = jnp.stack([jax.random.PRNGKey(s) for s in seeds])
     key_init, key_loop = jax.vmap(rgcl.split_key)(keys)
+    check_same_everywhere("training settings", {"config": config.to_dict(), "seeds": seeds})
+    check_same_everywhere("demos and hyperparameters", (demos, hparams))
+    leader = is_leader()
     # Seeds split over all devices (the CPU's cores with runtime.set_cpu_devices).
     key_init, key_loop, hparams = shard_batch_if_even((key_init, key_loop, hparams))
     total = config.iterations
@@ -183,16 +203,24 @@ def train_seeds(
     metrics_parts: list = []
     done = 0
     run_seconds = 0.0
-    if resume and ckpt is not None and ckpt.is_file():
+    resuming = resume and ckpt is not None and ckpt.is_file()
+    if resuming:
         state_like, m_like = checkpoint_like(rgcl, key_init, key_loop, demos, hparams)
         m_like = jax.tree.map(lambda a: jax.ShapeDtypeStruct((S, 0, *a.shape[2:]), a.dtype), m_like)
-        state, metrics, done, saved_seeds = _load_checkpoint(ckpt, state_like, m_like)
+        state_host, metrics, done, saved_seeds = _load_checkpoint(ckpt, state_like, m_like)
         if saved_seeds != seeds:
             raise ValueError(f"{ckpt}: checkpoint of seeds {saved_seeds}, not {seeds}")
-        state = jax.tree.map(jnp.asarray, state)
+        state = jax.tree.map(jnp.asarray, state_host)
         if metrics is not None:
             metrics_parts.append(metrics)
-        print(f"resumed {ckpt} at iteration {done}/{total}")
+    check_same_everywhere(
+        f"resume points ({ckpt})",
+        {"resume": resuming, "done": done},
+        hint="resuming on several machines needs the run folder on a filesystem they share",
+    )
+    if resuming:
+        if leader:
+            print(f"resumed {ckpt} at iteration {done}/{total}")
     else:
         t0 = time.perf_counter()
         compiled_init = init_fn.lower(key_init, demos, hparams).compile()
@@ -200,10 +228,11 @@ def train_seeds(
         t0 = time.perf_counter()
         state = jax.block_until_ready(compiled_init(key_init, demos, hparams))
         run_seconds += time.perf_counter() - t0
+        state_host = to_host(state)
     resumed_from = done
 
     bar = None
-    if progress:
+    if progress and leader:
         from tqdm.auto import tqdm
 
         bar = tqdm(total=total, initial=done, desc=f"rGCL {config.schedule}", unit="it")
@@ -219,24 +248,27 @@ def train_seeds(
             t0 = time.perf_counter()
             new_state, m = jax.block_until_ready(program(state, key_loop, demos))
             run_seconds += time.perf_counter() - t0
-            m = jax.tree.map(np.asarray, m)
+            m, new_host = to_host((m, new_state))
             for s, i in np.argwhere(m.rolled_back):
                 line = f"seed {seeds[s]} iteration {done + i + 1}: non-finite state, rolled back"
                 rollbacks.append(line)
-                print("NaN guard:", line)
-            if not _finite(new_state, state):
+                if leader:
+                    print("NaN guard:", line)
+            if not _finite(new_host, state_host):
                 line = f"iterations {done + 1}-{done + n}: non-finite state; restored, stopping"
                 rollbacks.append(line)
-                print("NaN guard:", line)
+                if leader:
+                    print("NaN guard:", line)
                 break
-            state = new_state
+            state, state_host = new_state, new_host
             metrics_parts.append(m)
             done += n
             if bar is not None:
                 bar.update(n)
                 bar.set_postfix(_postfix(m))
             if ckpt is not None and (done - last_ckpt >= checkpoint_every or done == total):
-                _save_checkpoint(ckpt, state, _concat(metrics_parts), done, seeds)
+                if leader:
+                    _save_checkpoint(ckpt, state_host, _concat(metrics_parts), done, seeds)
                 last_ckpt = done
             if crash_after is not None and done >= crash_after and done < total:
                 raise SimulatedCrash(f"simulated crash after iteration {done}")
@@ -244,7 +276,7 @@ def train_seeds(
         if bar is not None:
             bar.close()
     return RunResult(
-        state=jax.tree.map(np.asarray, state),
+        state=state_host,
         metrics=_concat(metrics_parts),
         seeds=seeds,
         config=config,

@@ -117,10 +117,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from diffgcl.runtime import enable_compilation_cache, set_cpu_devices
+    from diffgcl.runtime import apply_devices_option, enable_compilation_cache, set_cpu_devices
 
     args = build_parser().parse_args(argv)
-    set_cpu_devices()  # seed batches are sharded over the cores
+    args.argv = list(sys.argv[1:] if argv is None else argv)  # for --local-processes
+    if hasattr(args, "devices"):
+        apply_devices_option(args)
+    else:
+        set_cpu_devices()  # seed batches are sharded over the cores
     enable_compilation_cache()
     return int(args.func(args) or 0)
 

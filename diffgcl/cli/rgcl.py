@@ -3,11 +3,14 @@
     diffgcl train [--preset default] [--schedule v2] [--seeds 4] [--demos DIR] [--out DIR]
                   [--set gcl.n_steps=50 ...] [--resume] [--x64]
     diffgcl sweep --param cost_lr=1e-4,1e-3,1e-2 [--param kl_step=0.1,0.2] [--seeds 4] ...
+    diffgcl sweep|train ... --local-processes 2 [--devices 1]      N processes on this host
+    diffgcl sweep|train ... --coordinator HOST:PORT --num-processes N --process-id I
     diffgcl eval RUN_DIR        success, final distance, re-optimisation, EPIC of a saved run
     diffgcl plot RUN_DIR        redraw a run folder's plots
 
 Argument parsing and printing only: the host loop, run folders and demo loading live in
-:mod:`diffgcl.algorithms.runner`, the built-in demonstrations in
+:mod:`diffgcl.algorithms.runner`, the sweep in :mod:`diffgcl.algorithms.sweep`, the multi-process
+runtime (options, launcher, gathering) in :mod:`diffgcl.distributed`, the built-in demonstrations in
 :func:`diffgcl.algorithms.expert.builtin_demos`, the cost evaluation in
 :mod:`diffgcl.eval.learned_cost`.
 
@@ -19,11 +22,11 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
 from pathlib import Path
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 
 from diffgcl.algorithms.runner import load_demo_batch, load_run
@@ -48,6 +51,20 @@ def config_from_args(args):
     if getattr(args, "iterations", None):
         overrides.append(f"iterations={args.iterations}")
     return with_overrides(config, overrides)
+
+
+def _launch_or_join(args) -> int | None:
+    """``--local-processes``: the launched processes' exit status; else None after joining the
+    multi-process run the options or the environment describe (if any)."""
+    from diffgcl.distributed import launch_or_join
+    from diffgcl.envs import make_env
+
+    def prepare():  # the built-in demos are generated (and cached) by one process, here
+        _setup(args)
+        load_demo_batch(args.demos, make_env("arm"))
+
+    program = [sys.executable, "-m", "diffgcl.cli"]
+    return launch_or_join(args, program, getattr(args, "argv", sys.argv[1:]), prepare)
 
 
 def _add_common(p: argparse.ArgumentParser, seeds: int = 4) -> None:
@@ -85,8 +102,11 @@ def _print_table(rows: list[tuple[str, dict]]) -> None:
 def train_command(args) -> int:
     """Train one configuration over seeds through the host runner; write the run folder."""
     from diffgcl.algorithms.runner import train_seeds, write_run_folder
+    from diffgcl.distributed import ProcessLost, abandon, barrier, is_leader
     from diffgcl.envs import make_env
 
+    if (status := _launch_or_join(args)) is not None:
+        return status
     _setup(args)
     env = make_env("arm")
     config = config_from_args(args)
@@ -96,82 +116,77 @@ def train_command(args) -> int:
         args.out
         or Path("runs") / f"rgcl-{args.preset}-{config.schedule}-{time.strftime('%Y%m%d-%H%M%S')}"
     )
-    print(f"rGCL {config.schedule} ({args.preset}) on the arm, seeds {seeds}, run folder {out}")
-    result = train_seeds(
-        config,
-        env,
-        demos,
-        seeds,
-        out=out,
-        chunk=args.chunk,
-        checkpoint_every=args.checkpoint_every,
-        resume=args.resume,
-        progress=not args.no_progress,
-    )
+    leader = is_leader()
+    if leader:
+        print(f"rGCL {config.schedule} ({args.preset}) on the arm, seeds {seeds}, run folder {out}")
+    try:
+        result = train_seeds(
+            config,
+            env,
+            demos,
+            seeds,
+            out=out,
+            chunk=args.chunk,
+            checkpoint_every=args.checkpoint_every,
+            resume=args.resume,
+            progress=not args.no_progress,
+        )
+    except ValueError as err:  # seeds that do not divide over the processes, another checkpoint
+        raise SystemExit(f"diffgcl train: {err}") from None
+    except ProcessLost as err:
+        abandon(f"diffgcl train: {err}")
+    if not leader:  # process 0 writes the run folder; the others wait for it
+        barrier("run folder written")
+        return 0
     summary = write_run_folder(out, result, env, demos)
     _print_table([(f"{args.preset} {config.schedule}", summary)])
     print(f"compile {result.compile_seconds:.1f} s, run {result.run_seconds:.1f} s; plots in {out}")
+    barrier("run folder written")
     return 0 if summary["success_rate"] > 0 else 1
 
 
 # ---- sweep --------------------------------------------------------------------------------------
 
-SWEEPABLE = ("kl_step", "init_var", "cost_lr")
-
 
 def sweep_command(args) -> int:
-    """A grid over traced hyperparameters × seeds as one jit(vmap(train)) (chunked)."""
-    import itertools
-
-    from diffgcl.algorithms.rgcl import RGCLHyperparams, final_rollouts, make_train
+    """A grid over traced hyperparameters × seeds (:func:`diffgcl.algorithms.sweep.run_sweep`)."""
+    from diffgcl.algorithms.sweep import SWEEPABLE, parse_grid, run_sweep
+    from diffgcl.distributed import ProcessLost, abandon, barrier, is_leader
     from diffgcl.envs import make_env
-    from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
+    try:
+        grid = parse_grid(args.param)
+    except ValueError as err:
+        raise SystemExit(f"diffgcl sweep: {err}") from None
+    if (status := _launch_or_join(args)) is not None:
+        return status
     _setup(args)
     env = make_env("arm")
     config = config_from_args(args)
     demos = load_demo_batch(args.demos, env)
-    rgcl = make_train(config, env)
-    base = rgcl.default_hparams()
-    grid = {name: [float(getattr(base, name))] for name in SWEEPABLE}
-    for item in args.param:
-        name, values = item.split("=", 1)
-        if name not in SWEEPABLE:
-            raise SystemExit(f"sweep: {name} is not sweepable; choose from {SWEEPABLE}")
-        grid[name] = [float(v) for v in values.split(",")]
-    points = list(itertools.product(*(grid[n] for n in SWEEPABLE)))
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    runs = [(p, s) for p in points for s in seeds]
-    dtype = jnp.asarray(env.initial_states()).dtype
-    keys = jnp.stack([jax.random.PRNGKey(s) for _, s in runs])
-    hp = RGCLHyperparams(*(jnp.asarray([p[i] for p, _ in runs], dtype) for i in range(3)))
-    train = jax.jit(vmap_over_devices(rgcl.train, in_axes=(0, None, 0)))
-    rollout = jax.jit(jax.vmap(lambda c: final_rollouts(env, c)))
-    success = []
     t0 = time.perf_counter()
-    for i in range(0, len(runs), args.chunk):
-        sl = slice(i, i + args.chunk)
-        batch = shard_batch_if_even((keys[sl], jax.tree.map(lambda a, sl=sl: a[sl], hp)))
-        state, _ = train(batch[0], demos, batch[1])
-        X = rollout(state.gps.controller)
-        success.append(np.asarray(jax.vmap(jax.vmap(env.success))(X)).all(-1))
-    success = np.concatenate(success)
-    print(f"{len(runs)} runs in {time.perf_counter() - t0:.1f} s (incl. compile)")
-    table = []
-    for j, p in enumerate(points):
-        rate = float(success[j * len(seeds) : (j + 1) * len(seeds)].mean())
-        table.append({**dict(zip(SWEEPABLE, p, strict=True)), "success_rate": rate})
+    try:
+        result = run_sweep(config, env, demos, seeds, grid, chunk=args.chunk)
+    except ValueError as err:  # processes started with different settings
+        raise SystemExit(f"diffgcl sweep: {err}") from None
+    except ProcessLost as err:
+        abandon(f"diffgcl sweep: {err}")
+    if is_leader():
+        runs = len(result.points) * len(seeds)
         print(
-            "  " + ", ".join(f"{n}={v:g}" for n, v in zip(SWEEPABLE, p, strict=True)),
-            f"-> {rate:.2f}",
+            f"{runs} runs in {time.perf_counter() - t0:.1f} s (compile "
+            f"{result.compile_seconds:.1f} s, run {result.run_seconds:.1f} s) on "
+            f"{result.devices} devices of {result.processes} process(es)"
         )
-    if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(
-            json.dumps(
-                {"config": config.to_dict(), "seeds": seeds, "grid": table}, indent=1, default=str
-            )
-        )
+        for row in result.table():
+            values = ", ".join(f"{n}={row[n]:g}" for n in SWEEPABLE)
+            print(f"  {values} -> {row['success_rate']:.2f}")
+        if args.json:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            summary = {"config": config.to_dict(), **result.to_dict()}
+            args.json.write_text(json.dumps(summary, indent=1, default=str))
+    barrier("sweep written")
     return 0
 
 
@@ -244,6 +259,10 @@ def run_demo(args=None) -> int:
 
 def register(subparsers) -> None:
     """Add ``train``, ``sweep``, ``eval`` and ``plot`` to an argparse ``subparsers`` object."""
+    from diffgcl.algorithms.sweep import SWEEPABLE
+    from diffgcl.distributed import add_process_options
+    from diffgcl.runtime import add_devices_option
+
     train = subparsers.add_parser("train", help="rGCL on the arm over seeds (run folder)")
     _add_common(train)
     train.add_argument("--out", type=Path, default=None, help="run folder")
@@ -251,6 +270,8 @@ def register(subparsers) -> None:
     train.add_argument("--checkpoint-every", type=int, default=5)
     train.add_argument("--resume", action="store_true", help="continue from out/checkpoint.npz")
     train.add_argument("--no-progress", action="store_true")
+    add_devices_option(train)
+    add_process_options(train)
     train.set_defaults(func=train_command)
 
     sweep = subparsers.add_parser("sweep", help="rGCL over a grid of traced hyperparameters")
@@ -264,6 +285,8 @@ def register(subparsers) -> None:
     )
     sweep.add_argument("--chunk", type=int, default=32, help="runs per vmapped batch")
     sweep.add_argument("--json", type=Path, default=None)
+    add_devices_option(sweep)
+    add_process_options(sweep)
     sweep.set_defaults(func=sweep_command)
 
     ev = subparsers.add_parser("eval", help="evaluate a run folder (re-optimisation, EPIC)")

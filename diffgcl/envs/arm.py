@@ -17,7 +17,7 @@ import numpy as np
 from mujoco import mjx
 
 from diffgcl.checks import check_shape
-from diffgcl.sim.mjcf import load_mjcf, put_model, require, resolve_mjcf
+from diffgcl.sim.mjcf import load_mjcf, make_data, put_model, require, resolve_mjcf
 from diffgcl.types import Array, PRNGKey
 
 ARM_MJCF = "arm2d.xml"
@@ -105,7 +105,7 @@ def make_arm_env(
         raise ValueError(f"arm: x0 must be [4] or [C, 4], got {x0.shape}")
     return ArmEnv(
         model=mx,
-        data0=mjx.make_data(mx),
+        data0=make_data(mx),
         x0=jnp.asarray(x0, dtype),
         target=jnp.asarray(target, dtype),
         mjcf_path=str(path),

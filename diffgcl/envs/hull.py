@@ -27,7 +27,7 @@ from mujoco import mjx
 from diffgcl.checks import check_shape
 from diffgcl.sim import hull as hull_sim
 from diffgcl.sim.hull import HullParams
-from diffgcl.sim.mjcf import load_mjcf, put_model, resolve_mjcf
+from diffgcl.sim.mjcf import load_mjcf, make_data, put_model, resolve_mjcf
 from diffgcl.sim.sensors import SensorLayout, add_range_noise, range_readings
 from diffgcl.types import Array, PRNGKey
 
@@ -277,7 +277,7 @@ def make_hull_env(
     return HullEnv(
         params=params,
         model=mx,
-        data0=mjx.make_data(mx),
+        data0=make_data(mx),
         layout=layout or SensorLayout(),
         x0=jnp.asarray(x0, dtype),
         mjcf_path=str(path),

@@ -51,7 +51,7 @@ from flax import struct
 from mujoco import mjx
 
 from diffgcl.checks import check_shape
-from diffgcl.sim.mjcf import MJCFError, load_mjcf, put_model, require
+from diffgcl.sim.mjcf import MJCFError, load_mjcf, make_data, put_model, require
 
 Array = jax.Array
 
@@ -326,7 +326,7 @@ def hull_step(
     h = model.opt.timestep
     cmd = clip_command(params, u)
     decay = jnp.exp(-h / jnp.stack([params.tau_thrust, params.tau_nozzle]))
-    data0 = mjx.make_data(model)
+    data0 = make_data(model)
     data0 = data0.replace(mocap_pos=data0.mocap_pos.at[0, :2].set(x[SL_OBS]))
 
     def substep(x, _):

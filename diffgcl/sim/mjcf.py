@@ -45,11 +45,12 @@ def load_mjcf(name_or_path: str | os.PathLike) -> mujoco.MjModel:
 
 
 def put_model(model: mujoco.MjModel) -> mjx.Model:
-    """Copy a C model to an MJX model in the current default float precision.
+    """Copy a C model to an MJX model in the current default float precision, on this process's
+    first device (see :func:`make_data`).
 
     MJX follows ``jax_enable_x64``: float64 when it is on, float32 otherwise.
     """
-    mx = mjx.put_model(model)
+    mx = mjx.put_model(model, device=jax.local_devices()[0])
     dtype = jnp.zeros(()).dtype
 
     def cast(a):
@@ -58,6 +59,14 @@ def put_model(model: mujoco.MjModel) -> mjx.Model:
         return a
 
     return jax.tree.map(cast, mx)
+
+
+def make_data(mx: mjx.Model) -> mjx.Data:
+    """``mjx.make_data`` on this process's first device. MJX's default is ``jax.devices()[0]``,
+    which in a multi-process run (:mod:`diffgcl.distributed`) belongs to process 0: the other
+    processes could not even build an env (measured: "Number of addressable output shards must
+    match", then "Cross-host transfers are not supported" with the model there too)."""
+    return mjx.make_data(mx, device=jax.local_devices()[0])
 
 
 def require(model: mujoco.MjModel, path: str | os.PathLike, **sizes: int) -> None:

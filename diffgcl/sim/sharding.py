@@ -3,7 +3,12 @@
 Batched functions are plain ``jit(vmap(f))``; placing their inputs with a leading axis split
 over a one-dimensional device mesh lets XLA partition the whole program (GSPMD), so the same
 code runs on one CPU, on ``--xla_force_host_platform_device_count=N`` CPU devices (how the tests
-exercise it), on several GPUs, and across hosts after ``jax.distributed.initialize()``.
+exercise it), on several GPUs, and across processes after :func:`diffgcl.distributed.join`.
+
+Several processes: the mesh spans the devices of all of them and each process holds only its own
+slice of a batch. Every process builds the same whole batch on the host; :func:`shard_batch`
+keeps each process's slice. A batch that does not divide over the devices cannot fall back to
+one device there (each process would run the whole batch on its own), so it is an error.
 """
 
 from __future__ import annotations
@@ -21,34 +26,53 @@ def batch_mesh(devices=None) -> Mesh:
     return Mesh(np.asarray(devices), (BATCH_AXIS,))
 
 
+def spans_processes(mesh: Mesh) -> bool:
+    """Whether the mesh holds devices of more than one process."""
+    return len({d.process_index for d in mesh.devices.flat}) > 1
+
+
+def _indivisible(size: int, n: int, mesh: Mesh) -> str:
+    processes = len({d.process_index for d in mesh.devices.flat})
+    where = f"{n} devices" + (f" of {processes} processes" if processes > 1 else "")
+    return f"a batch of {size} does not divide over the {where}"
+
+
 def shard_batch(tree, mesh: Mesh | None = None):
     """Place every array of ``tree`` with its leading axis split over the mesh.
 
     The leading axis must be divisible by the number of devices; arrays with no leading axis
-    (scalars) are replicated.
+    (scalars) are replicated. On a mesh over several processes every process passes the same
+    whole (host) batch and keeps its own slice; an array already laid out on the mesh is left
+    as it is.
     """
     mesh = batch_mesh() if mesh is None else mesh
     n = mesh.devices.size
+    several = spans_processes(mesh)
 
     def place(a):
-        if np.ndim(a) == 0:
-            return jax.device_put(a, NamedSharding(mesh, PartitionSpec()))
-        if a.shape[0] % n:
-            raise ValueError(
-                f"shard_batch: leading axis {a.shape[0]} is not divisible by {n} devices"
-            )
-        return jax.device_put(a, NamedSharding(mesh, PartitionSpec(BATCH_AXIS)))
+        spec = PartitionSpec() if np.ndim(a) == 0 else PartitionSpec(BATCH_AXIS)
+        if np.ndim(a) and a.shape[0] % n:
+            raise ValueError(f"shard_batch: {_indivisible(a.shape[0], n, mesh)}")
+        sharding = NamedSharding(mesh, spec)
+        if not several or (isinstance(a, jax.Array) and a.sharding == sharding):
+            return jax.device_put(a, sharding)
+        host = np.asarray(a)
+        return jax.make_array_from_callback(host.shape, sharding, lambda index: host[index])
 
     return jax.tree.map(place, tree)
 
 
 def shard_batch_if_even(tree, mesh: Mesh | None = None):
     """:func:`shard_batch` when every leading axis divides evenly over the devices (and there is
-    more than one), else ``tree`` unchanged (it then runs on the default device)."""
+    more than one), else ``tree`` unchanged (it then runs on the default device). On a mesh over
+    several processes an uneven batch is a ValueError (see the module docstring)."""
     mesh = batch_mesh() if mesh is None else mesh
     n = mesh.devices.size
     sizes = {np.shape(a)[0] for a in jax.tree.leaves(tree) if np.ndim(a) > 0}
-    if n == 1 or not sizes or any(size % n for size in sizes):
+    uneven = [size for size in sizes if size % n]
+    if uneven and spans_processes(mesh):
+        raise ValueError(_indivisible(uneven[0], n, mesh))
+    if n == 1 or not sizes or uneven:
         return tree
     return shard_batch(tree, mesh)
 
@@ -61,7 +85,8 @@ def vmap_over_devices(fn, in_axes=0, mesh: Mesh | None = None):
     ``jit(vmap(f))`` is not: it all-gathered the batch inside ``lax.top_k`` (the GCL minibatch
     draw) at every Adam step, with a rendezvous of the devices each time. ``in_axes``: 0 (batched)
     or None (replicated) per positional argument; outputs are batched along axis 0. Falls back to
-    the plain ``vmap`` on one device or when a batch does not divide evenly. Jit the result.
+    the plain ``vmap`` on one device or when a batch does not divide evenly (an error on a mesh
+    over several processes). Jit the result.
     """
 
     def batched(*args):
@@ -77,7 +102,10 @@ def vmap_over_devices(fn, in_axes=0, mesh: Mesh | None = None):
             if a == 0
             for leaf in jax.tree.leaves(arg)
         }
-        if n == 1 or any(size % n for size in sizes):
+        uneven = [size for size in sizes if size % n]
+        if uneven and spans_processes(m):
+            raise ValueError(f"vmap_over_devices: {_indivisible(uneven[0], n, m)}")
+        if n == 1 or uneven:
             return vmapped(*args)
         specs = tuple(PartitionSpec(BATCH_AXIS) if a == 0 else PartitionSpec() for a in axes)
         return jax.shard_map(
