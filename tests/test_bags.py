@@ -19,13 +19,10 @@ from rosbags.typesys import get_types_from_msg
 from diffgcl.cli import bags as bags_cli
 from diffgcl.data.bags import BagError, bag_format, inspect_bag, open_bag, typestore_for
 from diffgcl.data.demos import DemoSet
-from diffgcl.data.ingest import (
-    IngestConfig,
-    IngestWarning,
+from diffgcl.data.ingest import IngestConfig, IngestWarning, ingest_bag, ingest_bags
+from diffgcl.data.signals import (
     Signal,
     hold,
-    ingest_bag,
-    ingest_bags,
     interpolate,
     latlon_to_local,
     local_to_latlon,
@@ -206,8 +203,12 @@ def test_segmentation_by_rules_without_markers(synth_sets, tmp_path):
         (marked,) = ingest_bag(bag)
         (ruled,) = ingest_bag(dst)
     assert ruled.meta["segmentation"] == "rules"
-    # The rules take the whole underway stretch: it contains the marked episode.
-    assert ruled.t[0] <= marked.t[0] and ruled.t[-1] >= marked.t[-1]
+    # The run at the pole: from the approach (no later than the start marker) past the closest
+    # approach, ending after the boat is back on its course.
+    pole = np.asarray(marked.meta["obstacle_xy"])
+    closest = marked.t[np.argmin(np.linalg.norm(marked.X[:, :2] - pole, axis=1))]
+    assert ruled.t[0] <= marked.t[0] and ruled.t[-1] > closest + 5 * NS
+    assert ruled.meta["swerve_side"] == marked.meta["swerve_side"]
 
 
 def test_one_bag_per_set(tmp_path):
@@ -435,7 +436,7 @@ def test_cli_synth_inspect_convert(tmp_path, capsys):
 def test_pointcloud2_points_in_hull_frame():
     """A PointCloud2 (x, y, z float32, 16-byte points) becomes hull-frame points (mount applied)."""
     from diffgcl.data.bags import TopicMessages
-    from diffgcl.data.ingest import scan_points
+    from diffgcl.data.scans import decode_scans
     from diffgcl.data.topics import RangeSensorSpec
 
     store = typestore_for("ros2-mcap")
@@ -452,7 +453,7 @@ def test_pointcloud2_points_in_hull_frame():
         "/cloud", "sensor_msgs/msg/PointCloud2", np.array([NS]), np.array([NS]), (cloud,)
     )
     spec = RangeSensorSpec("/cloud", mount=(2.0, 0.0, np.pi / 2))
-    (xy,) = scan_points("test.bag", data, spec)
+    (xy,) = decode_scans("test.bag", data, spec, "lidar").points
     # Sensor yawed 90° to port, 2 m ahead: (10, 0) -> (2, 10); (0, -5) -> (7, 0); NaN dropped.
     np.testing.assert_allclose(xy, [[2.0, 10.0], [7.0, 0.0]], atol=1e-6)
 

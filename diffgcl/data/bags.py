@@ -46,6 +46,13 @@ CUSTOM_MSGS: dict[str, str] = {
     "odin_msgs/msg/JetState": (
         "std_msgs/Header header\nfloat32 thrust  # [N]\nfloat32 nozzle  # [rad]\n"
     ),
+    # The "other boat" layout's jet command (diffgcl.data.synth, layout="other"): percent and
+    # degrees, positive steering to starboard, published on change.
+    "jet_msgs/msg/JetCmd": (
+        "std_msgs/Header header\n"
+        "float64 throttle  # [%] of full thrust, negative = reverse\n"
+        "float64 steering  # [deg], positive turns the bow to starboard\n"
+    ),
     # One radar sweep reduced to sparse detections in the sensor frame.
     "odin_msgs/msg/RadarSector": (
         "std_msgs/Header header\n"
@@ -55,6 +62,10 @@ CUSTOM_MSGS: dict[str, str] = {
         "float32[] intensities   # [0, 1]\n"
     ),
 }
+
+
+class IngestWarning(UserWarning):
+    """A recoverable problem in a bag (dropout, missing optional sensor, masked span)."""
 
 
 class BagError(Exception):
