@@ -376,11 +376,11 @@ def wrap_angle(a):
 
 def aim_window(t: np.ndarray, bearing: np.ndarray, k: int, window_s: float) -> tuple[float, int]:
     """(aim in rad, start index of its window): the smallest median |bearing off the bow| over
-    any ``window_s`` window of samples before index ``k`` (t: [n] ns, bearing: [n] rad);
-    (inf, -1) if the track before ``k`` is shorter than the window."""
-    window = int(round(window_s * 1e9))
-    if k == 0 or t[k - 1] - t[0] < window:
+    any ``window_s`` window of samples before index ``k`` (t: [n] ns, bearing: [n] rad). A track
+    before ``k`` shorter than the window is one window; (inf, -1) with fewer than 3 samples."""
+    if k < 3:
         return np.inf, -1
+    window = min(int(round(window_s * 1e9)), int(t[k - 1] - t[0]))
     ends = np.searchsorted(t[:k], t[:k] + window, side="right")
     best, where = np.inf, -1
     for i in range(0, k, max(1, k // 200)):

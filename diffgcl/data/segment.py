@@ -159,6 +159,21 @@ def _turn_start(psi: np.ndarray, rate: np.ndarray, ref: int, k: int) -> int:
     return end
 
 
+def _last_aimed(t, bearing, k: int, search: ObstacleSearch) -> tuple[int, int]:
+    """(first, end) sample indices of the last ``aim_window_s`` window (the whole track before
+    ``k`` if shorter) before ``k`` whose median |bearing| is within ``aim_deg`` (the best window
+    if none is)."""
+    window = min(int(round(search.aim_window_s * NS)), int(t[k - 1] - t[0]))
+    limit = np.deg2rad(search.aim_deg)
+    starts = np.flatnonzero(t[:k] <= t[k - 1] - window)
+    for i in starts[::-1][:: max(1, len(starts) // 200)]:
+        end = int(np.searchsorted(t, t[i] + window, side="right"))
+        if np.median(np.abs(bearing[i:end])) <= limit:
+            return int(i), end
+    _, i = aim_window(t, bearing, k, search.aim_window_s)
+    return int(i), int(np.searchsorted(t, t[i] + window, side="right"))
+
+
 def _track(position: Signal, heading: Signal, a: int, b: int):
     sel = (position.t >= a) & (position.t <= b)
     t, xy = position.t[sel], position.v[sel]
@@ -183,8 +198,9 @@ def runs_at_objects(
     if t.size < 2:
         return []
     rate = np.gradient(psi, t * 1e-9)
+    objects = np.asarray(objects, float).reshape(-1, 2)
     passes = []
-    for j, obj in enumerate(np.asarray(objects, float).reshape(-1, 2)):
+    for j, obj in enumerate(objects):
         rel = obj - xy
         dist = np.hypot(rel[:, 0], rel[:, 1])
         bearing = wrap_angle(np.arctan2(rel[:, 1], rel[:, 0]) - psi)
@@ -192,34 +208,35 @@ def runs_at_objects(
         edges = np.flatnonzero(np.diff(inside))
         for lo, hi in zip(edges[::2], edges[1::2], strict=True):
             k = lo + int(np.argmin(dist[lo:hi]))
-            aim, start = aim_window(t, bearing, k, search.aim_window_s)
+            aim, _ = aim_window(t, bearing, k, search.aim_window_s)
             if aim <= np.deg2rad(search.aim_deg):
-                passes.append((k, start, j))
+                # The final approach: the last aimed window before the pass.
+                first, last = _last_aimed(t, bearing, k, search)
+                passes.append((k, first, float(np.median(psi[first:last])), j))
     passes.sort()
     runs: list[tuple[int, int, int]] = []
     last_end = -1
     limit, turn = np.deg2rad(rules.max_course_change_deg), np.deg2rad(APPROACH_TURN_DEG)
-    for n, (k, aim_start, j) in enumerate(passes):
-        if aim_start <= last_end:
+    for n, (k, first, heading, j) in enumerate(passes):
+        if first <= last_end:
             continue
-        ref = psi[aim_start]
-        i = aim_start
-        while i - 1 > last_end and abs(psi[i - 1] - ref) <= turn:
+        # Start: back along the approach while the heading stays near the final approach's.
+        i = first
+        while i - 1 > last_end and abs(psi[i - 1] - heading) <= turn:
             i -= 1
+        # End: where a turn away from the approach course begins, ...
         end = t.size - 1
-        over = np.flatnonzero(np.abs(psi[k:] - ref) > limit)
+        over = np.flatnonzero(np.abs(psi[k:] - heading) > limit)
         if over.size:
-            end = _turn_start(psi, rate, aim_start, k + int(over[0]))
-        # Back on course: within return_m of the line from where it aimed through the object.
-        course = objects[j] - xy[aim_start]
-        length = float(np.hypot(*course))
-        if length > 0:
-            cross = (xy[k:] - objects[j]) @ (np.array([-course[1], course[0]]) / length)
-            back = np.flatnonzero(np.abs(cross) <= rules.return_m)
-            if back.size:
-                tail = t[k + back[0]] + round(rules.tail_s * NS)
-                end = min(end, int(np.searchsorted(t, tail, side="right")) - 1)
-        # A later run whose approach starts after this pass ends this one.
+            end = _turn_start(psi, rate, first, k + int(over[0]))
+        # ... tail_s after the boat is back within return_m of the course line (through the
+        # object along the final approach's heading), ...
+        normal = np.array([-np.sin(heading), np.cos(heading)])
+        back = np.flatnonzero(np.abs((xy[k:] - objects[j]) @ normal) <= rules.return_m)
+        if back.size:
+            tail = t[k + back[0]] + round(rules.tail_s * NS)
+            end = min(end, int(np.searchsorted(t, tail, side="right")) - 1)
+        # ... or where the approach of a later pass starts.
         later = [p[1] for p in passes[n + 1 :] if p[1] > k]
         if later:
             end = min(end, min(later) - 1)
