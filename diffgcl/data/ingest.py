@@ -65,7 +65,6 @@ import numpy as np
 from diffgcl.data.bags import BagError, IngestWarning, open_bag, read_topics
 from diffgcl.data.demos import DEMO_FOLDER, DemoSet
 from diffgcl.data.scans import (
-    ObstacleEstimate,
     Scans,
     coast,
     decode_scans,
@@ -237,11 +236,13 @@ def ingest_bag(
                 bag_start,
             )
     raw = read_topics(path, {spec.topic for spec in roles.values()})
-    timed = {
-        role: message_times(path, raw[spec.topic], spec, role)
-        for role, spec in roles.items()
-        if spec.topic in raw
-    }
+    bag_warnings: list[str] = []
+    timed = {}
+    for role, spec in roles.items():
+        if spec.topic in raw:
+            timed[role], note = message_times(path, raw[spec.topic], spec, role)
+            if note is not None:
+                _warn(bag_warnings, note)
     for role in ("position", "heading", "commands"):
         if not timed[role].msgs:
             raise BagError(path, f"required topic for {role} has no messages", roles[role].topic)
@@ -259,7 +260,6 @@ def ingest_bag(
     if "obstacle" in timed and timed["obstacle"].msgs:
         obstacle_sig = decode_obstacle(path, timed["obstacle"], datum)
 
-    bag_warnings: list[str] = []
     sensors: dict[str, SensorReturns | None] = {}
     for role in ("lidar", "radar"):
         spec = roles.get(role)
@@ -335,56 +335,19 @@ def ingest_bag(
             continue
 
         # The obstacle: surveyed, or estimated from the scans of this episode.
-        estimate: ObstacleEstimate | None = None
-        track_t, track, track_psi = grid[valid], g.pos[valid], g.psi[valid, 0]
-        if obstacle_sig is not None:
-            sel = (obstacle_sig.t >= t_a) & (obstacle_sig.t <= t_b)
-            vals = obstacle_sig.v[sel] if sel.any() else obstacle_sig.v
-            obstacle_xy = vals.mean(axis=0)
-            source, seen = "topic", len(vals)
-            spread = float(np.sqrt(np.mean(np.sum((vals - obstacle_xy) ** 2, axis=1))))
-        else:
-            estimate = _estimate_obstacle(sensors, t_a, t_b, track_t, track, track_psi, tm)
-            if estimate is None:
-                raise BagError(
-                    path,
-                    "no obstacle position (no obstacle topic and no range-sensor returns)",
-                    tm.obstacle.topic if tm.obstacle is not None else None,
-                    t_a,
-                )
-            problem = None
-            if estimate.xy is None:
-                problem = (
-                    f"episode: no object seen in {tm.obstacle_search.min_scans}+ "
-                    f"{estimate.sensor} scans that the boat headed for (aim <= "
-                    f"{tm.obstacle_search.aim_deg:g} deg) and passed within "
-                    f"{tm.obstacle_search.gate:g} m; candidates: {estimate.describe()}"
-                )
-            elif estimate.ambiguous and tm.obstacle_search.ambiguous == "skip":
-                problem = (
-                    f"episode: ambiguous obstacle, {estimate.qualified} objects "
-                    f"qualify ({estimate.describe()}); set obstacle_search.ambiguous: keep to "
-                    "keep such episodes flagged"
-                )
-            if problem is not None:
-                reason = BagError(
-                    path,
-                    f"t={t_a * 1e-9:.3f}s..{t_b * 1e-9:.3f}s: {problem} (segment skipped)",
-                    estimate.sensor and roles[estimate.sensor].topic,
-                    t_a,
-                )
-                _warn(bag_warnings, str(reason))
-                skipped.append(reason)
-                continue
-            obstacle_xy = estimate.xy
-            best = estimate.chosen
-            source, spread, seen = estimate.sensor, best.object.spread, best.object.scans
-            if estimate.ambiguous:
-                _warn(
-                    ep_warnings,
-                    f"{path}: episode {index}: ambiguous obstacle from {estimate.sensor} scans "
-                    f"({estimate.describe()}); kept, flagged obstacle_ambiguous",
-                )
+        track = (grid[valid], g.pos[valid], g.psi[valid, 0])
+        obstacle = _episode_obstacle(path, obstacle_sig, sensors, t_a, t_b, track, tm)
+        if isinstance(obstacle, BagError):
+            _warn(bag_warnings, str(obstacle))
+            skipped.append(obstacle)
+            continue
+        obstacle_xy, obstacle_meta, estimate = obstacle
+        if estimate is not None and estimate.ambiguous:
+            _warn(
+                ep_warnings,
+                f"{path}: episode {index}: ambiguous obstacle from {estimate.sensor} scans "
+                f"({estimate.describe()}); kept, flagged obstacle_ambiguous",
+            )
         obs_xy = np.broadcast_to(obstacle_xy, (grid.size, 2))
 
         for text in _span_warnings(path, grid, _topic_checks(g.checks), "masked"):
@@ -409,27 +372,13 @@ def ingest_bag(
             "set": info.get("set"),
             "obstacle": info.get("pole", "unknown"),
             "obstacle_xy": obs_xy[0].tolist(),
-            "obstacle_source": source,
-            "obstacle_spread_m": spread,
-            "obstacle_scans": seen,
-            "obstacle_ambiguous": bool(estimate is not None and estimate.ambiguous),
+            **obstacle_meta,
             "swerve_side": swerve_side(X, valid),
             "valid_fraction": float(valid.mean()),
             "actuators": "feedback" if actuators is not None else "reconstructed",
             **obs_meta,
             "warnings": ep_warnings,
         }
-        if estimate is not None:
-            meta["obstacle_candidates"] = [
-                {
-                    "xy": c.object.xy.tolist(),
-                    "scans": c.object.scans,
-                    "spread_m": c.object.spread,
-                    "closest_m": c.closest,
-                    "aim_deg": c.aim_deg if np.isfinite(c.aim_deg) else None,
-                }
-                for c in estimate.candidates[:4]
-            ]
         meta.update({k: v for k, v in info.items() if k not in ("set", "pole")})
         # Steps that are not valid keep finite placeholder values (a DemoSet forbids NaN only
         # at valid steps, but downstream arithmetic is safer without NaN anywhere).
@@ -508,6 +457,70 @@ def _topic_checks(pairs) -> list[tuple[Signal, np.ndarray]]:
         else:
             merged[sig.topic] = (sig, ok)
     return list(merged.values())
+
+
+def _episode_obstacle(path, obstacle_sig, sensors, t_a, t_b, track, tm: TopicMap):
+    """(obstacle xy [2], metadata, estimate or None) of the episode [t_a, t_b] with the valid
+    track (t, xy, ψ); a :class:`BagError` to skip the episode with (no object qualifies, or an
+    ambiguous one with ``obstacle_search.ambiguous: skip``)."""
+    if obstacle_sig is not None:
+        sel = (obstacle_sig.t >= t_a) & (obstacle_sig.t <= t_b)
+        vals = obstacle_sig.v[sel] if sel.any() else obstacle_sig.v
+        xy = vals.mean(axis=0)
+        meta = {
+            "obstacle_source": "topic",
+            "obstacle_spread_m": float(np.sqrt(np.mean(np.sum((vals - xy) ** 2, axis=1)))),
+            "obstacle_scans": len(vals),
+            "obstacle_ambiguous": False,
+        }
+        return xy, meta, None
+    estimate = _estimate_obstacle(sensors, t_a, t_b, *track, tm)
+    if estimate is None:
+        raise BagError(
+            path,
+            "no obstacle position (no obstacle topic and no range-sensor returns)",
+            tm.obstacle.topic if tm.obstacle is not None else None,
+            t_a,
+        )
+    search = tm.obstacle_search
+    problem = None
+    if estimate.xy is None:
+        problem = (
+            f"episode: no object seen in {search.min_scans}+ {estimate.sensor} scans that the "
+            f"boat headed for (aim <= {search.aim_deg:g} deg) and passed within {search.gate:g} "
+            f"m; candidates: {estimate.describe()}"
+        )
+    elif estimate.ambiguous and search.ambiguous == "skip":
+        problem = (
+            f"episode: ambiguous obstacle, {estimate.qualified} objects qualify "
+            f"({estimate.describe()}); set obstacle_search.ambiguous: keep to keep such "
+            "episodes flagged"
+        )
+    if problem is not None:
+        return BagError(
+            path,
+            f"t={t_a * 1e-9:.3f}s..{t_b * 1e-9:.3f}s: {problem} (segment skipped)",
+            tm.roles()[estimate.sensor].topic,
+            t_a,
+        )
+    best = estimate.chosen
+    meta = {
+        "obstacle_source": estimate.sensor,
+        "obstacle_spread_m": best.object.spread,
+        "obstacle_scans": best.object.scans,
+        "obstacle_ambiguous": estimate.ambiguous,
+        "obstacle_candidates": [
+            {
+                "xy": c.object.xy.tolist(),
+                "scans": c.object.scans,
+                "spread_m": c.object.spread,
+                "closest_m": c.closest,
+                "aim_deg": c.aim_deg if np.isfinite(c.aim_deg) else None,
+            }
+            for c in estimate.candidates[:4]
+        ],
+    }
+    return estimate.xy, meta, estimate
 
 
 def _known_objects(obstacle_sig, sensors, tm: TopicMap) -> np.ndarray | None:

@@ -108,24 +108,28 @@ def ned_yaw_to_enu(yaw_ned):
 # --------------------------------------------------------------------------------------------
 
 
-def message_times(path, data: TopicMessages, spec: TopicSpec, role: str) -> TopicMessages:
-    """``data`` with ``stamp_ns`` replaced by the times ingestion uses for ``role`` (time source
-    minus latency), sorted; see the module docstring for bad stamps."""
+def message_times(
+    path, data: TopicMessages, spec: TopicSpec, role: str
+) -> tuple[TopicMessages, str | None]:
+    """(``data`` with ``stamp_ns`` replaced by the times ingestion uses for ``role`` (time source
+    minus latency), sorted; a warning when messages with broken times were dropped, else None).
+    See the module docstring for bad stamps."""
     t = (data.stamp_ns if spec.time_source == "header" else data.bag_ns).copy()
     t -= int(round(spec.latency * NS))
     keep = np.ones(t.size, bool)
+    note = None
     back = _backwards(t)
     if back is not None and spec.bad_stamps == "mask":
         offset = t - data.bag_ns
         keep = np.abs(offset - np.median(offset)) <= MAX_REORDER_S * NS
         dropped = np.flatnonzero(~keep)
-        warnings.warn(
-            f"{path}: topic {data.topic}: {dropped.size} messages with broken {spec.time_source} "
-            f"times dropped ({role}.bad_stamps: mask), received between "
-            f"t={data.bag_ns[dropped[0]] * 1e-9:.3f}s and t={data.bag_ns[dropped[-1]] * 1e-9:.3f}s",
-            IngestWarning,
-            stacklevel=2,
-        )
+        if dropped.size:
+            note = (
+                f"{path}: topic {data.topic}: {dropped.size} messages with broken "
+                f"{spec.time_source} times dropped ({role}.bad_stamps: mask), received between "
+                f"t={data.bag_ns[dropped[0]] * 1e-9:.3f}s and "
+                f"t={data.bag_ns[dropped[-1]] * 1e-9:.3f}s"
+            )
         back = _backwards(t[keep])
     if back is not None:
         i, latest = back
@@ -140,9 +144,10 @@ def message_times(path, data: TopicMessages, spec: TopicSpec, role: str) -> Topi
         )
     idx = np.flatnonzero(keep)
     idx = idx[np.argsort(t[idx], kind="stable")]
-    return TopicMessages(
+    timed = TopicMessages(
         data.topic, data.msgtype, data.bag_ns[idx], t[idx], tuple(data.msgs[i] for i in idx)
     )
+    return timed, note
 
 
 def _backwards(t: np.ndarray) -> tuple[int, int] | None:

@@ -38,8 +38,32 @@ topic                      type                         rate      noise (1 σ)
 **Files**: one bag per episode (``set1/ep000.bag`` ...), the way a boat crew records one run at a
 time; each bag has episode markers 2.5 s after its first and 1 s before its last message, so the
 bags also work with ``bag_per="set"`` (one bag per set, episodes one after another, 20 s apart).
-``manifest.json`` lists the episodes with their true metadata and the true hull parameters.
-The output folder is written under a temporary name and renamed when complete.
+``manifest.json`` lists the episodes with their true metadata (pole position and radius, swerve
+side, times) and the true hull parameters. The output folder follows
+:func:`diffgcl.io.write_folder` (kind :data:`SYNTH_FOLDER`).
+
+**Other boats** (issue 15; :func:`other_boat_config`): ``layout="other"`` records the same
+simulated runs the way another vessel does —
+
+=========================  ===========================  ========  =============================
+topic                      type                         rate      what differs
+=========================  ===========================  ========  =============================
+/gnss/fix                  sensor_msgs/NavSatFix        5 Hz      stamped 0.2 s after the fix
+/odom                      nav_msgs/Odometry            20 Hz     NED pose, FRD twist
+/imu/data                  sensor_msgs/Imu              50 Hz     ENU, as Odin's
+/jet/cmd                   jet_msgs/JetCmd              on change % of 12 kN, deg to starboard
+/scan                      sensor_msgs/LaserScan        10 Hz     set 2 only
+/radar/points              sensor_msgs/PointCloud2      0.4 Hz    x, y, z, intensity; sea clutter
+/events                    std_msgs/String              markers   "start 1" / "end 1" (optional)
+=========================  ===========================  ========  =============================
+
+(no jet feedback, no obstacle topic) — and, as options of any layout: ``markers`` (key=value,
+id or none), ``obstacle_topic``, ``visible_poles="set"`` (every pole of a set stands in the
+water, the range sensors see all of them; poles kept apart and off the other episodes' courses),
+``repositioning`` (with one bag per set, the drive from each run's end to the next start is
+recorded: a kinematic leg, :func:`repositioning_leg`) and ``stamp_glitch`` (a topic's header
+stamps jump back for a span). The Odin layout with the default options is unchanged, byte for
+byte.
 """
 
 from __future__ import annotations
