@@ -47,6 +47,13 @@ def config_from_args(args):
     from diffgcl.algorithms.presets import get_preset, with_overrides
 
     config = get_preset(args.preset, getattr(args, "schedule", None))
+    if getattr(args, "policy", "none") == "mdgps":
+        import dataclasses
+
+        from diffgcl.algorithms.mdgps import PolicySettings
+
+        settings = PolicySettings(sample_on_policy=bool(getattr(args, "on_policy", False)))
+        config = dataclasses.replace(config, policy=settings)
     overrides = list(getattr(args, "set", None) or [])
     if getattr(args, "iterations", None):
         overrides.append(f"iterations={args.iterations}")
@@ -272,6 +279,16 @@ def register(subparsers) -> None:
     train.add_argument("--no-progress", action="store_true")
     add_devices_option(train)
     add_process_options(train)
+    train.add_argument(
+        "--policy",
+        choices=("none", "mdgps"),
+        default="none",
+        help="also train a global policy on the observations (MDGPS; override its settings "
+        "with --set policy.s_step.n_steps=... etc.)",
+    )
+    train.add_argument(
+        "--on-policy", action="store_true", help="with --policy: sample from the global policy"
+    )
     train.set_defaults(func=train_command)
 
     sweep = subparsers.add_parser("sweep", help="rGCL over a grid of traced hyperparameters")
