@@ -10,6 +10,7 @@ from diffgcl.types import Env
 _REGISTRY: dict[str, str] = {
     "arm": "diffgcl.envs.arm:make_arm_env",
     "hull": "diffgcl.envs.hull:make_hull_env",
+    "usv": "diffgcl.envs.usv:make_usv_env",
 }
 ENV_NAMES: tuple[str, ...] = tuple(_REGISTRY)
 
