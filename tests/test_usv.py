@@ -92,3 +92,105 @@ def test_success_and_metrics_follow_the_clearance():
     m = usv.metrics(hit)
     assert bool(m["collision"]) and not bool(m["success"]) and float(m["min_clearance"]) < 0
     assert float(m["side"]) == 1.0  # the boat is above (to the left of) the pole
+
+
+def world_demos(n=3, T=40, seed=0):
+    """Straight-ish hull tracks in world coordinates past poles, as ingestion would give them."""
+    from diffgcl.data.demos import DemoSet
+    from diffgcl.envs.hull import observation
+
+    rng = np.random.default_rng(seed)
+    X = np.zeros((n, T + 1, hull_sim.DX))
+    for i in range(n):
+        start, course = rng.uniform(-200, 200, 2), rng.uniform(-np.pi, np.pi)
+        e = np.array([np.cos(course), np.sin(course)])
+        pole = start + (90.0 + 10.0 * i) * e + rng.normal(0, 1, 2)
+        t = np.arange(T + 1)[:, None]
+        p = start + 5.0 * t * e + np.sin(t / 7.0) * 3.0 * np.array([-e[1], e[0]])
+        X[i, :, :2] = p
+        X[i, :, hull_sim.IX_PSI] = course + 0.1 * np.sin(t[:, 0] / 5.0) + 2 * np.pi * (i - 1)
+        X[i, :, hull_sim.IX_VX : hull_sim.IX_VY + 1] = np.gradient(p, axis=0) / 0.1
+        X[i, :, hull_sim.IX_R] = rng.normal(0, 0.05, T + 1)
+        X[i, :, hull_sim.SL_OBS] = pole
+    ranges = rng.uniform(1, 60, (n, T + 1, 48))
+    O = np.asarray(
+        jax.vmap(jax.vmap(lambda r, x: observation(r, x[2], hull_sim.body_velocity(x))))(
+            jnp.asarray(ranges), jnp.asarray(X)
+        )
+    )
+    U = rng.normal(size=(n, T, 2))
+    return DemoSet(X=X, U=U, O=O, mask=np.ones((n, T + 1)), dt=0.1, env="hull")
+
+
+def test_task_frame_keeps_the_geometry():
+    from diffgcl.data.task_frame import rotate_states, to_task_frame
+
+    demos = world_demos()
+    task = to_task_frame(demos)
+
+    def pole_distance(X):
+        return np.hypot(*(X[..., :2] - X[..., hull_sim.SL_OBS]).T)
+
+    np.testing.assert_allclose(pole_distance(task.X), pole_distance(demos.X), rtol=1e-12)
+    np.testing.assert_allclose(task.X[:, 0, :2], 0.0, atol=1e-9)  # the start is the origin
+    np.testing.assert_allclose(task.X[:, :, hull_sim.IX_OBS_Y], 0.0, atol=1e-9)  # pole ahead
+    assert np.all(task.X[:, :, hull_sim.IX_OBS_X] > 0)
+    assert np.all(np.abs(task.X[:, 0, hull_sim.IX_PSI]) < np.pi)
+    nu = jax.vmap(jax.vmap(hull_sim.body_velocity))
+    np.testing.assert_allclose(nu(task.X), nu(demos.X), atol=1e-9)  # body frame unchanged
+    np.testing.assert_allclose(task.O[..., :48], demos.O[..., :48])  # ranges unchanged
+    np.testing.assert_allclose(task.O[..., 48], np.sin(task.X[..., hull_sim.IX_PSI]), atol=1e-12)
+    np.testing.assert_allclose(task.U, demos.U)
+    for i in range(demos.num_episodes):  # the inverse transform gives the bag's data back
+        frame = task.episodes[i]["task_frame"]
+        back = rotate_states(task.X[i], np.zeros(2), -frame["course"])
+        back[:, :2] += frame["origin"]
+        back[:, hull_sim.SL_OBS] += frame["origin"]
+        d = back[:, hull_sim.IX_PSI] - demos.X[i, :, hull_sim.IX_PSI]
+        np.testing.assert_allclose(np.cos(d), 1.0, atol=1e-12)
+        back[:, hull_sim.IX_PSI] = demos.X[i, :, hull_sim.IX_PSI]
+        np.testing.assert_allclose(back, demos.X[i], atol=1e-9)
+
+
+def test_pass_windows_centre_the_closest_approach():
+    from diffgcl.data.task_frame import closest_approach, pass_windows, to_task_frame
+
+    task = to_task_frame(world_demos(T=40))
+    k = [closest_approach(task.X[i], task.mask[i]) for i in range(3)]
+    before, after = min(k), 40 - max(k)
+    win = pass_windows(task, before, after)
+    assert win.X.shape == (3, before + after + 1, hull_sim.DX) and win.horizon == before + after
+    for i in range(3):
+        assert closest_approach(win.X[i], win.mask[i]) == before
+        assert win.episodes[i]["window"] == [k[i] - before, k[i] + after]
+    with pytest.warns(UserWarning, match="no valid window"):
+        short = pass_windows(task, before + 1, after)
+    assert short.num_episodes < 3
+
+
+def test_network_on_task_features_is_the_network_on_the_features():
+    """A cost network with a feature map equals the plain network applied to φ(x); its goal
+    regulariser differentiates through the normaliser the same way."""
+    from diffgcl.costs.gcl import goal_penalty
+    from diffgcl.costs.network import CostNetwork, CostNetworkConfig
+
+    usv = make_usv_env()
+    phi = usv.cost_features
+    config = CostNetworkConfig(hidden=(40,), n_features=20, features="env")
+    net = CostNetwork(config, usv.dX, usv.dU, jnp.float64, feature_map=phi)
+    bare = CostNetwork(config, 16, usv.dU, jnp.float64)
+    X = usv.initial_states()
+    X = X.at[:, hull_sim.IX_PX].set(jnp.array([60.0, 90.0, 100.0, 95.0]))
+    params = net.init(jax.random.PRNGKey(0)).replace(norm=net.fit_normaliser(X))
+    u = jnp.array([0.2, -0.1])
+    for x in X:
+        np.testing.assert_allclose(
+            float(net.cost(params, x, u)), float(bare.cost(params, phi(x), u)), rtol=1e-12
+        )
+    traj = jnp.broadcast_to(X[0], (5, usv.dX))
+    norm = params.norm
+    std = jnp.maximum(jnp.sqrt(norm.var), config.std_floor)
+    grad = jax.grad(lambda f: bare.state_cost(params, f, 4))(phi(traj[-1]))
+    np.testing.assert_allclose(
+        float(goal_penalty(net, params, traj)), float(jnp.sum((grad * std) ** 2)), rtol=1e-12
+    )

@@ -94,8 +94,6 @@ from diffgcl.costs.network import (
     CostNetwork,
     CostNetworkConfig,
     CostParams,
-    init_normaliser,
-    update_normaliser,
 )
 from diffgcl.policies.mdgps import PolicyState
 from diffgcl.sim.rollout import rollout_controller, sample_controller
@@ -253,9 +251,15 @@ class RGCL(NamedTuple):
 
 
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
-    """The cost network of ``config`` for ``env`` (parameters in the run's float dtype)."""
+    """The cost network of ``config`` for ``env`` (parameters in the run's float dtype; with
+    ``network.features == "env"`` it reads ``env.cost_features``)."""
     dtype = jnp.asarray(env.initial_states()).dtype
-    return CostNetwork(config.network, env.dX, env.dU, param_dtype=dtype)
+    features = None
+    if config.network.features == "env":
+        if not hasattr(env, "cost_features"):
+            raise ValueError(f"env {env.name!r} has no cost_features for network.features='env'")
+        features = env.cost_features
+    return CostNetwork(config.network, env.dX, env.dU, param_dtype=dtype, feature_map=features)
 
 
 def _make_optimiser(config: GCLConfig, learning_rate: Array) -> optax.GradientTransformation:
@@ -361,8 +365,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         key_gps, key_net, key_samples, key_pretrain = jax.random.split(key, 4)
         gps = phases.init(key_gps, GPSHyperparams(kl_step=hp.kl_step, init_var=hp.init_var))
         params = network.init(key_net)
-        norm = update_normaliser(init_normaliser(dX, dtype), demos.X)
-        params = params.replace(norm=norm)
+        params = params.replace(norm=network.fit_normaliser(demos.X))
         optimiser = _make_optimiser(gcl_cfg, hp.cost_lr)
         cost = CostState(
             params=params, opt_state=optimiser.init(params.net), step=jnp.zeros((), jnp.int32)
