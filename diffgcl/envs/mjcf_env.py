@@ -79,6 +79,7 @@ class MJCFEnv:
     dU: int
     dO: int
     obs_parts: tuple  # ((kind, index or None), ...) or a callable
+    n_cost_features: int  # dX + the observation parts that are not the state
     true_cost: CostFn | None = None
     success_test: Callable[[Array], Array] | None = None
 
@@ -160,6 +161,17 @@ class MJCFEnv:
                 start, dim = index
                 out.append(d.sensordata[start : start + dim])
         return jnp.concatenate(out) if out else jnp.zeros(0, x.dtype)
+
+    def cost_features(self, x: Array) -> Array:
+        """What a learned cost reads of a state: ``[x, o']`` with ``o'`` the observation parts
+        that are not already the state (sites, bodies, sensors; all of a function's output):
+        [n_cost_features]. With ``obs="state"`` it is ``x``."""
+        if callable(self.obs_parts):
+            return jnp.concatenate([x, jnp.asarray(self.obs_parts(x))])
+        extra = tuple(p for p in self.obs_parts if p[0] not in ("state", "qpos", "qvel"))
+        if not extra:
+            return x
+        return jnp.concatenate([x, dataclasses.replace(self, obs_parts=extra).obs(x)])
 
     def initial_states(self) -> Array:
         """Conditions x0: [C, dX]."""
@@ -365,6 +377,7 @@ def make_mjcf_env(
         dU=model.nu,
         dO=0,
         obs_parts=_obs_parts(model, obs, path),
+        n_cost_features=0,
         true_cost=cost,
         success_test=success,
     )
@@ -373,8 +386,9 @@ def make_mjcf_env(
     try:
         jax.eval_shape(env.step, x, jnp.zeros(env.dU, dtype))
         o = jax.eval_shape(env.obs, x)
+        s = jax.eval_shape(env.cost_features, x)
     except NotImplementedError as err:
         raise MJCFError(f"{path}: MJX cannot run this model: {err}") from None
     if len(o.shape) != 1:
         raise MJCFError(f"{path}: the observation must be a vector, got shape {o.shape}")
-    return dataclasses.replace(env, dO=int(o.shape[0]))
+    return dataclasses.replace(env, dO=int(o.shape[0]), n_cost_features=int(s.shape[0]))
