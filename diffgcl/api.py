@@ -4,9 +4,9 @@
 
     env = api.load_model("my_robot.xml", success=reached)  # MJCFEnv; the test is optional
     demos = api.load_demos("demos.npz", env)               # npz of qpos/qvel/ctrl per episode
-    run = api.learn(env, demos)                            # rGCL, `default` preset
-    rollout = run.rollout()                                # the learned controllers, noise-free
-    print(run.report()["success_rate"], rollout.ctrl.shape)
+    run = api.learn(env, demos, policy=True)               # rGCL (`default`) + MDGPS policy
+    rollout = run.policy_rollout(my_starts)                # the global policy, noise-free
+    print(run.report()["policy"]["success_rate"], rollout.ctrl.shape)
     run.save("runs/my_robot")
 
 What :func:`learn` decides for a model it has never seen (``docs/your_robot.md``):
@@ -18,6 +18,10 @@ What :func:`learn` decides for a model it has never seen (``docs/your_robot.md``
   weight are fractions of each actuator's range, whatever its units;
 * the cost: the ``default`` preset's quadratic in the state, the state normalised by the demos'
   mean and standard deviation (:class:`~diffgcl.costs.network.CostNetwork`).
+
+With ``policy=True`` rGCL trains a global policy on the env's observations alongside (MDGPS,
+:mod:`diffgcl.algorithms.mdgps`; ``RGCLConfig.policy``): it acts from any start state, where the
+local controllers only serve the demos' own.
 
 What :meth:`LearnedRun.report` gives without a user's cost or test: the learned cost of the
 controllers' rollouts and of the demos, the distance of the rollouts to the demos (root mean
@@ -31,6 +35,7 @@ it adds success rates and true costs for both.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import json
 import os
 from collections.abc import Callable, Sequence
@@ -84,7 +89,7 @@ def demo_conditions(demos: DemoSet, atol: float = 1e-6) -> tuple[np.ndarray, Dem
     if labels and all(c is not None for c in labels):
         cond = np.asarray(labels, int)
         if set(cond.tolist()) != set(range(cond.max() + 1)):
-            raise DemoError(f"demos: condition labels must be 0..C-1, got {sorted(set(cond))}")
+            raise DemoError(f"demos: condition labels must be 0..C-1, got {sorted(set(cond.tolist()))}")
     else:
         tol = atol * max(1.0, float(np.abs(X0).max()))
         starts: list[np.ndarray] = []
@@ -175,13 +180,63 @@ class LearnedRun:
         params = jax.tree.map(lambda a: jnp.asarray(a[seed_index]), self.cost_params)
         return self.network().bind(params)
 
+    @property
+    def has_policy(self) -> bool:
+        return self.result.state.policy is not None
+
+    def policy_rollout(self, x0=None, seed_index: int = 0) -> Rollout:
+        """Noise-free rollouts of one seed's global policy from ``x0: [B, dX]`` (default: the
+        training conditions), ``env.horizon`` steps."""
+        X, U = self.policy_rollouts(x0)
+        return rollout_arrays(self.env, X[seed_index], U[seed_index])
+
+    def policy_rollouts(self, x0=None) -> tuple[Array, Array]:
+        """Every seed's global policy from ``x0: [B, dX]`` (default: the training conditions):
+        X [S, B, T+1, dX], U [S, B, T, dU] (one compiled program per run)."""
+        if not self.has_policy:
+            raise ValueError("this run has no global policy; learn(..., policy=True) trains one")
+        x0 = self.env.initial_states() if x0 is None else jnp.atleast_2d(jnp.asarray(x0))
+        if x0.ndim != 2 or x0.shape[1] != self.env.dX:
+            raise ValueError(f"policy_rollout: x0 must be [B, {self.env.dX}], got {x0.shape}")
+        params = jax.tree.map(jnp.asarray, self.result.state.policy.params)
+        traj = self._policy_program(params, x0.astype(self.env.x0.dtype))
+        return traj.X, traj.U
+
+    @functools.cached_property
+    def _policy_program(self):
+        from diffgcl.eval.policy import policy_rollouts
+
+        policy, env = self.policy(), self.env
+        return jax.jit(jax.vmap(lambda p, x: policy_rollouts(env, policy, p, x), (0, None)))
+
+    def policy(self):
+        """The :class:`~diffgcl.policies.network.GaussianPolicy` (parameters: the run's
+        ``result.state.policy.params``, leading axis seeds)."""
+        from diffgcl.algorithms.mdgps import make_policy
+
+        return make_policy(self.config.policy, self.env)
+
     def rollout(self, seed_index: int = 0) -> Rollout:
         """Noise-free rollouts of one seed's final controllers from every condition."""
+        X, U = self.controller_rollouts()
+        return rollout_arrays(self.env, X[seed_index], U[seed_index])
+
+    def controller_rollouts(self) -> tuple[Array, Array]:
+        """Every seed's final local controllers from their conditions, noise-free: X [S, C, T+1,
+        dX], U [S, C, T, dU] (one compiled program per run)."""
+        return self._controller_program(jax.tree.map(jnp.asarray, self.controllers))
+
+    @functools.cached_property
+    def _controller_program(self):
         from diffgcl.algorithms.rgcl import final_rollouts
 
-        ctrl = jax.tree.map(lambda a: jnp.asarray(a[seed_index]), self.controllers)
-        X = jax.jit(lambda c: final_rollouts(self.env, c))(ctrl)
-        return rollout_arrays(self.env, X, _controller_actions(ctrl, X))
+        env = self.env
+
+        def one(ctrl):
+            X = final_rollouts(env, ctrl)
+            return X, _controller_actions(ctrl, X)
+
+        return jax.jit(jax.vmap(one))
 
     def report(self, *, reoptimise: bool = True) -> dict:
         """The run's report (module docstring), computed once."""
@@ -212,6 +267,15 @@ class LearnedRun:
             "x0": self.env.initial_states(),
             **{f"cost_param_{i}": a for i, a in enumerate(leaves)},
         }
+        if self.has_policy:
+            p = self.policy_rollout()
+            arrays.update(
+                {
+                    f"policy_param_{i}": a
+                    for i, a in enumerate(jax.tree.leaves(self.result.state.policy.params))
+                }
+            )
+            arrays.update(policy_rollout_X=p.X, policy_rollout_ctrl=p.ctrl)  # fmt: skip
         np.savez_compressed(out / "learned.npz", **{k: np.asarray(v) for k, v in arrays.items()})
         (out / "config.json").write_text(json.dumps(self.config.to_dict(), indent=1, default=str))
         (out / "report.json").write_text(json.dumps(report, indent=1))
@@ -269,15 +333,18 @@ def learn(
     seeds: Sequence[int] = (0,),
     iterations: int | None = None,
     overrides: Sequence[str] = (),
+    policy: bool = False,
     progress: bool = True,
     out: str | os.PathLike | None = None,
 ) -> LearnedRun:
-    """Learn a cost (rGCL, ``preset``) and local controllers from ``demos`` on ``env``.
+    """Learn a cost (rGCL, ``preset``) and local controllers from ``demos`` on ``env``, and with
+    ``policy`` a global policy on the env's observations (MDGPS inside rGCL).
 
     The env gets the demos' start states as conditions and their length as horizon
     (:func:`demo_conditions`); seeds run as one vmapped batch; ``overrides`` are
     ``"gcl.n_steps=20"``-style config edits; ``out``: a checkpoint folder for the runner.
     """
+    from diffgcl.algorithms.mdgps import PolicySettings
     from diffgcl.algorithms.presets import get_preset, with_overrides
     from diffgcl.algorithms.rgcl import demo_batch
     from diffgcl.algorithms.runner import train_seeds
@@ -293,6 +360,8 @@ def learn(
     env = env.with_conditions(x0, horizon=demos.horizon)
     config = get_preset(preset, schedule)
     edits = list(overrides) + ([f"iterations={int(iterations)}"] if iterations else [])
+    if policy and config.policy is None:
+        config = dataclasses.replace(config, policy=PolicySettings())
     config = with_overrides(config, edits)
     batch = demo_batch(demos, x0.shape[0])
     result = train_seeds(
@@ -303,7 +372,7 @@ def learn(
 
 def _report(run: LearnedRun, reoptimise: bool) -> dict:
     """See :meth:`LearnedRun.report`."""
-    from diffgcl.algorithms.rgcl import final_rollouts, make_reoptimise
+    from diffgcl.algorithms.rgcl import make_reoptimise
     from diffgcl.control.lqr import controller_entropy
     from diffgcl.costs.demo_controller import fit_demo_controller
     from diffgcl.costs.expansion import trajectory_cost
@@ -318,8 +387,7 @@ def _report(run: LearnedRun, reoptimise: bool) -> dict:
     demo_U = [jnp.asarray(run.demos.U[cond == c]) for c in range(C)]
     scale = jnp.asarray(state_scale(run.demos.X), demo_X[0].dtype)
 
-    rollouts = jax.jit(jax.vmap(lambda c: final_rollouts(env, c)))(ctrl)  # [S, C, T+1, dX]
-    actions = jax.vmap(_controller_actions)(ctrl, rollouts)
+    rollouts, actions = run.controller_rollouts()  # [S, C, T+1, dX], [S, C, T, dU]
     traj_cost = jax.vmap(network.trajectory_cost, (None, 0, 0))
 
     def per_seed(X, U, p):
@@ -328,10 +396,10 @@ def _report(run: LearnedRun, reoptimise: bool) -> dict:
         dist = jnp.stack([demo_distance(X[c], demo_X[c], scale) for c in range(C)])
         return learned, dist
 
-    learned, dist = jax.vmap(per_seed)(rollouts, actions, params)
-    demo_learned = jax.vmap(
+    learned, dist = jax.jit(jax.vmap(per_seed))(rollouts, actions, params)
+    demo_learned = jax.jit(jax.vmap(
         lambda p: jnp.stack([traj_cost(p, demo_X[c], demo_U[c]).mean() for c in range(C)])
-    )(params)
+    ))(params)  # fmt: skip
     demo_spread = [
         float(jnp.mean(jax.vmap(lambda x, c=c: demo_distance(x, demo_X[c], scale))(demo_X[c])))
         for c in range(C)
@@ -371,11 +439,13 @@ def _report(run: LearnedRun, reoptimise: bool) -> dict:
             float(jnp.mean(jax.vmap(lambda X, U: trajectory_cost(env.expert_cost, X, U))(x, u)))
             for x, u in zip(demo_X, demo_U, strict=True)
         ]
+    if run.has_policy:
+        report["policy"] = _policy_report(run, demo_X, scale)
     if reoptimise:
         reopt = make_reoptimise(config, env, network)
         keys = jnp.stack([jax.random.PRNGKey(100_000 + s) for s in run.seeds])
         state, _ = jax.jit(jax.vmap(reopt))(keys, params)
-        re_X = jax.jit(jax.vmap(lambda c: final_rollouts(env, c)))(state.controller)
+        re_X, re_U = run._controller_program(state.controller)
         re_dist = jax.vmap(
             lambda X: jnp.stack([demo_distance(X[c], demo_X[c], scale) for c in range(C)])
         )(re_X)
@@ -391,8 +461,28 @@ def _report(run: LearnedRun, reoptimise: bool) -> dict:
             block["success"] = success.tolist()
             block["success_rate"] = float(success.all(-1).mean())
         if env.has_cost:
-            re_U = jax.vmap(_controller_actions)(state.controller, re_X)
             true = jax.vmap(jax.vmap(lambda X, U: trajectory_cost(env.expert_cost, X, U)))
             block["true_cost"] = np.asarray(true(re_X, re_U)).tolist()
         report["reoptimisation"] = block
     return report
+
+
+def _policy_report(run: LearnedRun, demo_X, scale) -> dict:
+    """The global policy's noise-free rollouts from the training conditions, per seed."""
+    env = run.env
+    C = len(demo_X)
+    X, U = run.policy_rollouts()  # [S, C, T+1, dX]
+    dist = jax.vmap(lambda X: jnp.stack([demo_distance(X[c], demo_X[c], scale) for c in range(C)]))(
+        X
+    )
+    block = {"demo_distance": np.asarray(dist).tolist(), "mean_demo_distance": float(dist.mean())}
+    if env.has_success:
+        success = np.asarray(jax.vmap(jax.vmap(env.success))(X))
+        block["success"] = success.tolist()
+        block["success_rate"] = float(success.all(-1).mean())
+    if env.has_cost:
+        from diffgcl.costs.expansion import trajectory_cost
+
+        true = jax.vmap(jax.vmap(lambda X, U: trajectory_cost(env.expert_cost, X, U)))
+        block["true_cost"] = np.asarray(true(X, U)).tolist()
+    return block

@@ -8,13 +8,15 @@ descriptions (``models/reacher.xml``, ``models/cartpole.xml``) — this script p
    from the best expert seed's controllers, written as an npz of MuJoCo arrays (qpos, qvel,
    ctrl per episode, the documented format of :mod:`diffgcl.data.mujoco_demos`);
 2. **the user of diffgcl**: the ≤ 10-line path of :mod:`diffgcl.api` — load the model, load the
-   demos, learn the cost with rGCL's ``default`` preset, roll out the controllers, save the run —
-   with the success test and the true cost handed in for the report only.
+   demos, learn the cost with rGCL's ``default`` preset and a global policy (MDGPS), roll the
+   policy out, save the run — with the success test and the true cost handed in for the report
+   only.
 
 Reported per model: the expert's and the demos' success, rGCL's success (the user's test, noise-
 free rollouts of the final controllers from every start state), re-optimisation (GPS from scratch
-on the frozen learned cost: success and distance to the demos), distances to the demos, learned
-and true costs, and times (compile and run, on a shared 2-core machine: indicative only).
+on the frozen learned cost: success and distance to the demos), the global policy's success from
+the demos' start states and from held-out ones, distances to the demos, learned and true costs,
+and times (compile and run, on a shared 2-core machine: indicative only).
 
     python experiments/any_mjcf.py --json runs/any_mjcf.json            # full: 4 seeds
     python experiments/any_mjcf.py --fast --json runs/any_mjcf_fast.json  # 1 seed, short runs
@@ -85,6 +87,8 @@ class Task:
 
     mjcf: str
     starts: tuple  # start states, the env's state coordinates
+    held_out: tuple  # start states the demos never saw, for the global policy
+    obs: tuple  # what the policy sees (and the cost reads besides the state)
     horizon: int
     dt: float | None
     cost: object
@@ -94,12 +98,18 @@ class Task:
 
 def tasks() -> dict[str, Task]:
     reacher_q = ((0.0, 0.0), (-1.0, 1.5), (2.5, -1.0), (1.0, 2.0))
+    reacher_held_out = ((0.5, 0.5), (-0.5, 1.0), (1.5, 1.5), (2.0, -0.5))
     cart_q = ((0.3, 0.05), (-0.3, -0.05), (0.2, -0.05), (-0.2, 0.05))
+    cart_held_out = ((0.1, 0.03), (-0.1, -0.03), (0.25, 0.0), (-0.25, 0.0))
     at_rest = lambda qs: tuple((*q, 0.0, 0.0) for q in qs)
     return {
         "reacher": Task(
             mjcf="reacher.xml",
             starts=at_rest(reacher_q),
+            held_out=at_rest(reacher_held_out),
+            # The fingertip: demos from different starts end in different arm configurations
+            # (elbow up or down) with the fingertip on the target.
+            obs=("state", "site:fingertip"),
             horizon=50,
             dt=None,
             cost=reacher_cost,
@@ -109,6 +119,8 @@ def tasks() -> dict[str, Task]:
         "cartpole": Task(
             mjcf="cartpole.xml",
             starts=at_rest(cart_q),
+            held_out=at_rest(cart_held_out),
+            obs=("state",),
             horizon=100,
             dt=0.02,
             cost=cartpole_cost,
@@ -177,11 +189,17 @@ def expert_demos(task: Task, path: Path, *, seeds, demos_per_condition: int) -> 
 
 
 def learn_from_demos(task: Task, demo_file: Path, out: Path, *, seeds, iterations) -> dict:
-    env = api.load_model(task.mjcf, dt=task.dt, success=task.success, cost=task.cost)
+    env = api.load_model(task.mjcf, dt=task.dt, obs=task.obs, success=task.success, cost=task.cost)
     demos = api.load_demos(demo_file, env)
-    run = api.learn(env, demos, seeds=seeds, iterations=iterations, progress=False)
+    run = api.learn(env, demos, seeds=seeds, iterations=iterations, policy=True, progress=False)
     report = run.report()
     run.save(out)
+    # The user's own check of the global policy on start states the demos never saw.
+    X, _ = run.policy_rollouts(np.asarray(task.held_out))
+    success = np.asarray(jax.vmap(jax.vmap(run.env.success))(X))
+    report["policy"]["held_out_starts"] = np.asarray(task.held_out).tolist()
+    report["policy"]["held_out_success"] = success.tolist()
+    report["policy"]["held_out_success_rate"] = float(success.mean())
     return report
 
 
@@ -226,11 +244,13 @@ def main(argv=None) -> int:
             iterations=iterations,
         )
         seconds = time.perf_counter() - t0
-        reopt = report["reoptimisation"]
+        reopt, policy = report["reoptimisation"], report["policy"]
         print(
             f"   success {report['success_rate']:.2f}, re-optimisation "
-            f"{reopt['success_rate']:.2f}, demo distance {report['mean_demo_distance']:.2f} "
-            f"(re-opt {reopt['mean_demo_distance']:.2f}), {seconds:.0f} s"
+            f"{reopt['success_rate']:.2f}, policy {policy['success_rate']:.2f} (held-out starts "
+            f"{policy['held_out_success_rate']:.2f}), demo distance "
+            f"{report['mean_demo_distance']:.2f} (re-opt {reopt['mean_demo_distance']:.2f}), "
+            f"{seconds:.0f} s"
         )
         results[name] = {"expert": expert, "rgcl": report, "seconds": seconds}
     if args.json:

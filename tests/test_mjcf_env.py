@@ -245,3 +245,51 @@ def test_mjx_unsupported_is_none_for_every_shipped_model():
 
     for path in sorted(models_dir().glob("*.xml")):
         assert mjx_unsupported(load_mjcf(path)) is None, path.name
+
+
+# ---- the learned cost on state features ---------------------------------------------------------
+
+
+def test_cost_network_on_state_features_equals_a_network_on_the_features():
+    from diffgcl.costs.gcl import goal_penalty
+    from diffgcl.costs.network import (
+        CostNetwork,
+        CostNetworkConfig,
+        init_normaliser,
+        update_normaliser,
+    )
+
+    phi = lambda x: jnp.concatenate([x, 2.0 * jnp.sin(x[:1])])
+    cfg = CostNetworkConfig(hidden=(), n_features=8, action_weight=0.1, learn_action_weight=False)
+    featured = CostNetwork(cfg, 3, 2, jnp.float64, phi, n_state_features=4)
+    plain = CostNetwork(cfg, 4, 2, jnp.float64)
+    X = jax.random.normal(jax.random.key(0), (6, 3)) * jnp.array([1.0, 2.0, 0.5]) + 1.0
+    Phi = jax.vmap(phi)(X)
+    norm = featured.fit_normaliser(X)
+    expected = update_normaliser(init_normaliser(4, jnp.float64), Phi)
+    np.testing.assert_allclose(np.asarray(norm.mean), np.asarray(expected.mean), rtol=1e-14)
+    np.testing.assert_allclose(np.asarray(norm.var), np.asarray(expected.var), rtol=1e-14)
+    params = featured.init(jax.random.key(1)).replace(norm=norm)
+    assert featured.dS == 4
+    u = jnp.asarray([0.3, -0.2])
+    for x, s in zip(X, Phi, strict=True):
+        np.testing.assert_allclose(
+            float(featured.cost(params, x, u, 0)), float(plain.cost(params, s, u, 0)), rtol=1e-12
+        )
+    # The goal penalty: the gradient with respect to the normalised input, equal to the plain
+    # network's (chain rule through the normaliser) and to central differences.
+    g_featured = float(goal_penalty(featured, params, X))
+    g_plain = float(goal_penalty(plain, params, Phi))
+    z0 = plain.network_input(params, Phi[-1], 5)
+    h = 1e-6
+    fd = [
+        (
+            plain.state_cost_of_input(params, z0 + h * e)
+            - plain.state_cost_of_input(params, z0 - h * e)
+        )
+        / (2 * h)
+        for e in jnp.eye(4)
+    ]
+    np.testing.assert_allclose(g_featured, g_plain, rtol=1e-12)
+    np.testing.assert_allclose(g_featured, float(np.sum(np.square(fd))), rtol=1e-7)
+    assert g_featured > 1e-3
