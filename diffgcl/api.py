@@ -2,12 +2,12 @@
 
     from diffgcl import api
 
-    env = api.load_model("my_robot.xml", success=reached)  # MJCFEnv; the test is optional
-    demos = api.load_demos("demos.npz", env)               # npz of qpos/qvel/ctrl per episode
-    run = api.learn(env, demos, policy=True)               # rGCL (`default`) + MDGPS policy
-    rollout = run.policy_rollout(my_starts)                # the global policy, noise-free
+    env = api.load_model("my_robot.xml", success=reached)  # your test is optional
+    demos = api.load_demos("demos.npz", env)  # qpos, qvel, ctrl per episode
+    run = api.learn(env, demos, policy=True)  # rGCL (`default`) + MDGPS
+    rollout = run.policy_rollout(new_starts)  # the global policy from any states
     print(run.report()["policy"]["success_rate"], rollout.ctrl.shape)
-    run.save("runs/my_robot")
+    run.save("runs/my_robot")  # report, controllers, cost, policy, plot
 
 What :func:`learn` decides for a model it has never seen (``docs/your_robot.md``):
 
@@ -89,7 +89,9 @@ def demo_conditions(demos: DemoSet, atol: float = 1e-6) -> tuple[np.ndarray, Dem
     if labels and all(c is not None for c in labels):
         cond = np.asarray(labels, int)
         if set(cond.tolist()) != set(range(cond.max() + 1)):
-            raise DemoError(f"demos: condition labels must be 0..C-1, got {sorted(set(cond.tolist()))}")
+            raise DemoError(
+                f"demos: condition labels must be 0..C-1, got {sorted(set(cond.tolist()))}"
+            )
     else:
         tol = atol * max(1.0, float(np.abs(X0).max()))
         starts: list[np.ndarray] = []

@@ -168,3 +168,23 @@ def test_a_users_folder_is_never_written_into(tmp_path):
     ours = api._run_folder(tmp_path / "new")
     (ours / "run.json").write_text(json.dumps({"format": api.RUN_FORMAT}))
     assert api._run_folder(ours) == ours
+
+
+def test_cli_train_mjcf_needs_demos(capsys):
+    from diffgcl.cli import main
+
+    with pytest.raises(SystemExit, match=r"train --mjcf: give the demonstrations with --demos"):
+        main(["train", "--mjcf", "reacher.xml", "--x64"])
+
+
+@pytest.mark.slow
+def test_cli_train_mjcf_writes_the_run_folder(demo_file, tmp_path, capsys):
+    from diffgcl.cli import main
+
+    out = tmp_path / "cli_run"
+    args = ["train", "--mjcf", "reacher.xml", "--demos", str(demo_file), "--out", str(out)]
+    args += ["--seeds", "1", "--iterations", "1", "--no-progress", "--x64"]
+    args += [a for item in TINY for a in ("--set", item)]
+    assert main(args) == 0
+    assert "conditions 2, horizon 8" in capsys.readouterr().out
+    assert json.loads((out / "run.json").read_text())["format"] == api.RUN_FORMAT

@@ -2,7 +2,7 @@
 
     diffgcl train [--preset default] [--schedule v2] [--seeds 4] [--demos DIR] [--out DIR]
                   [--set gcl.n_steps=50 ...] [--resume] [--x64]
-    diffgcl train --mjcf MODEL.xml --demos DEMOS.npz [--dt 0.02] [--obs state,site:tip] ...
+    diffgcl train --mjcf MODEL.xml --demos DEMOS.npz [--dt 0.02] [--obs state,site:tip] [--policy]
                                 your own model (diffgcl.api, docs/your_robot.md)
     diffgcl sweep --param cost_lr=1e-4,1e-3,1e-2 [--param kl_step=0.1,0.2] [--seeds 4] ...
     diffgcl sweep|train ... --local-processes 2 [--devices 1]      N processes on this host
@@ -130,6 +130,7 @@ def train_mjcf_command(args) -> int:
         seeds=seeds,
         iterations=args.iterations,
         overrides=args.set,
+        policy=args.policy,
         progress=not args.no_progress,
     )
     report = run.report()
@@ -140,6 +141,8 @@ def train_mjcf_command(args) -> int:
         f"{report['mean_demo_distance']:.3f} (re-optimised {reopt['mean_demo_distance']:.3f}, "
         f"demos among themselves {np.mean(report['demo_spread']):.3f}) demo standard deviations"
     )
+    if "policy" in report:
+        print(f"global policy: distance to the demos {report['policy']['mean_demo_distance']:.3f}")
     print(f"compile {report['compile_seconds']:.1f} s, run {report['run_seconds']:.1f} s; "
           f"report and plots in {out}")  # fmt: skip
     return 0
@@ -320,6 +323,7 @@ def register(subparsers) -> None:
                        "(docs/your_robot.md)")  # fmt: skip
     train.add_argument("--dt", type=float, default=None, help="--mjcf: control period (s)")
     train.add_argument("--obs", default=None, help="--mjcf: e.g. state,site:fingertip")
+    train.add_argument("--policy", action="store_true", help="--mjcf: a global policy (MDGPS)")
     train.add_argument("--out", type=Path, default=None, help="run folder")
     train.add_argument("--chunk", type=int, default=5, help="iterations per jitted call")
     train.add_argument("--checkpoint-every", type=int, default=5)
