@@ -48,7 +48,7 @@ from mujoco import mjx
 
 from diffgcl.checks import check_shape
 from diffgcl.sim.coordinates import ConfigurationChart, configuration_chart
-from diffgcl.sim.mjcf import MJCFError, load_mjcf, put_model_checked, resolve_mjcf
+from diffgcl.sim.mjcf import MJCFError, load_mjcf, make_data, put_model_checked, resolve_mjcf
 from diffgcl.types import Array, CostFn, PRNGKey
 
 ACTION_SCALES = ("ctrl", "range")
@@ -359,7 +359,7 @@ def make_mjcf_env(
     skip = _frame_skip(model, dt, path)
     env = MJCFEnv(
         model=mx,
-        data0=mjx.make_data(mx),
+        data0=make_data(mx),
         chart=chart,
         x0=jnp.asarray(X0, dtype),
         ctrl_scale=_ctrl_scale(model, action_scale, path),
