@@ -16,8 +16,9 @@ What :func:`learn` decides for a model it has never seen (``docs/your_robot.md``
 * actions scaled by the control range (:func:`load_model` builds the env with
   ``action_scale="range"``), so GPS's exploration variance ``init_var`` and the cost's action
   weight are fractions of each actuator's range, whatever its units;
-* the cost: the ``default`` preset's quadratic in the state, the state normalised by the demos'
-  mean and standard deviation (:class:`~diffgcl.costs.network.CostNetwork`).
+* the cost: the ``default`` preset's quadratic in the state and the observation's site, body and
+  sensor parts (:meth:`~diffgcl.envs.mjcf_env.MJCFEnv.cost_features`), each normalised by the
+  demos' mean and standard deviation (:class:`~diffgcl.costs.network.CostNetwork`).
 
 With ``policy=True`` rGCL trains a global policy on the env's observations alongside (MDGPS,
 :mod:`diffgcl.algorithms.mdgps`; ``RGCLConfig.policy``): it acts from any start state, where the
