@@ -17,8 +17,9 @@ What :func:`learn` decides for a model it has never seen (``docs/your_robot.md``
   ``action_scale="range"``), so GPS's exploration variance ``init_var`` and the cost's action
   weight are fractions of each actuator's range, whatever its units;
 * the cost: the ``default`` preset's quadratic in the state and the observation's site, body and
-  sensor parts (:meth:`~diffgcl.envs.mjcf_env.MJCFEnv.cost_features`), each normalised by the
-  demos' mean and standard deviation (:class:`~diffgcl.costs.network.CostNetwork`).
+  sensor parts (:meth:`~diffgcl.envs.mjcf_env.MJCFEnv.cost_features`; ``network.features="env"``
+  when there are any), each normalised by the demos' mean and standard deviation
+  (:class:`~diffgcl.costs.network.CostNetwork`).
 
 With ``policy=True`` rGCL trains a global policy on the env's observations alongside (MDGPS,
 :mod:`diffgcl.algorithms.mdgps`; ``RGCLConfig.policy``): it acts from any start state, where the
@@ -365,6 +366,10 @@ def learn(
     edits = list(overrides) + ([f"iterations={int(iterations)}"] if iterations else [])
     if policy and config.policy is None:
         config = dataclasses.replace(config, policy=PolicySettings())
+    if env.n_cost_features > env.dX:  # sites, bodies or sensors besides the state
+        config = dataclasses.replace(
+            config, network=dataclasses.replace(config.network, features="env")
+        )
     config = with_overrides(config, edits)
     batch = demo_batch(demos, x0.shape[0])
     result = train_seeds(

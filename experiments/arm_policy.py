@@ -278,9 +278,7 @@ def main(argv=None) -> int:
 
         for name, (policy, params) in policies.items():
             p0 = jax.tree.map(lambda a: a[0], params)
-            policy_paths(
-                env, policy, p0, x0_sets, args.out / f"arm_policy_{name}.png", title=name
-            )
+            policy_paths(env, policy, p0, x0_sets, args.out / f"arm_policy_{name}.png", title=name)
         print(f"plots in {args.out}")
     summary["wall_seconds"] = time.perf_counter() - t_start
     if args.json is not None:

@@ -73,7 +73,7 @@ def test_learn_takes_conditions_and_horizon_from_the_demos_and_reports(run, tmp_
     assert [e["condition"] for e in run.demos.episodes] == [0, 1, 0, 1, 0, 1]
     # The cost reads the state and the fingertip, normalised by the demos.
     network = run.network()
-    assert network.dS == 7
+    assert run.config.network.features == "env" and network.state_input_dim == 7
     norm = jax.tree.map(lambda a: np.asarray(a[0]), run.cost_params.norm)
     S = np.asarray(jax.vmap(jax.vmap(run.env.cost_features))(jnp.asarray(run.demos.X)))
     np.testing.assert_allclose(norm.mean, S.reshape(-1, 7).mean(0), rtol=1e-10, atol=1e-12)

@@ -24,7 +24,8 @@ order — ``"state"``, ``"qpos"`` (MuJoCo's, quaternions included), ``"qvel"``, 
 (world position [3]), ``"body:NAME"`` (world position [3]), ``"sensor:NAME"`` (the sensor's
 reading, computed by ``mjx.forward`` at ``ctrl = 0``) — or a function ``o = f(x)`` of one state.
 The parts that are not the state also feed a learned cost: :meth:`MJCFEnv.cost_features` is the
-state followed by them, the network's input (:func:`diffgcl.algorithms.rgcl.make_network`).
+state followed by them, the network's input with ``network.features="env"`` (what
+:func:`diffgcl.api.learn` sets when there are such parts).
 
 Cost and success test are the user's, both optional: ``cost(x, u, t)`` (a
 :data:`~diffgcl.types.CostFn`, the "true cost" reported next to the learned one) and
