@@ -337,12 +337,13 @@ def learn(
     seeds: Sequence[int] = (0,),
     iterations: int | None = None,
     overrides: Sequence[str] = (),
-    policy: bool = False,
+    policy=False,
     progress: bool = True,
     out: str | os.PathLike | None = None,
 ) -> LearnedRun:
     """Learn a cost (rGCL, ``preset``) and local controllers from ``demos`` on ``env``, and with
-    ``policy`` a global policy on the env's observations (MDGPS inside rGCL).
+    ``policy`` (True, or :class:`~diffgcl.algorithms.mdgps.PolicySettings`) a global policy on
+    the env's observations (MDGPS inside rGCL).
 
     The env gets the demos' start states as conditions and their length as horizon
     (:func:`demo_conditions`); seeds run as one vmapped batch; ``overrides`` are
@@ -364,7 +365,9 @@ def learn(
     env = env.with_conditions(x0, horizon=demos.horizon)
     config = get_preset(preset, schedule)
     edits = list(overrides) + ([f"iterations={int(iterations)}"] if iterations else [])
-    if policy and config.policy is None:
+    if isinstance(policy, PolicySettings):
+        config = dataclasses.replace(config, policy=policy)
+    elif policy and config.policy is None:
         config = dataclasses.replace(config, policy=PolicySettings())
     if env.n_cost_features > env.dX:  # sites, bodies or sensors besides the state
         config = dataclasses.replace(

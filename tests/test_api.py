@@ -183,8 +183,9 @@ def test_cli_train_mjcf_writes_the_run_folder(demo_file, tmp_path, capsys):
 
     out = tmp_path / "cli_run"
     args = ["train", "--mjcf", "reacher.xml", "--demos", str(demo_file), "--out", str(out)]
-    args += ["--seeds", "1", "--iterations", "1", "--no-progress", "--x64"]
+    args += ["--seeds", "1", "--iterations", "1", "--no-progress", "--x64", "--policy", "mdgps"]
     args += [a for item in TINY for a in ("--set", item)]
     assert main(args) == 0
-    assert "conditions 2, horizon 8" in capsys.readouterr().out
+    printed = capsys.readouterr().out
+    assert "conditions 2, horizon 8" in printed and "global policy" in printed
     assert json.loads((out / "run.json").read_text())["format"] == api.RUN_FORMAT

@@ -2,8 +2,8 @@
 
     diffgcl train [--preset default] [--schedule v2] [--seeds 4] [--demos DIR] [--out DIR]
                   [--set gcl.n_steps=50 ...] [--resume] [--x64]
-    diffgcl train --mjcf MODEL.xml --demos DEMOS.npz [--dt 0.02] [--obs state,site:tip] [--policy]
-                                your own model (diffgcl.api, docs/your_robot.md)
+    diffgcl train --mjcf MODEL.xml --demos DEMOS.npz [--dt 0.02] [--obs state,site:tip]
+                  [--policy mdgps]        your own model (diffgcl.api, docs/your_robot.md)
     diffgcl sweep --param cost_lr=1e-4,1e-3,1e-2 [--param kl_step=0.1,0.2] [--seeds 4] ...
     diffgcl sweep|train ... --local-processes 2 [--devices 1]      N processes on this host
     diffgcl sweep|train ... --coordinator HOST:PORT --num-processes N --process-id I
@@ -45,16 +45,22 @@ def _setup(args):
     enable_compilation_cache()
 
 
+def _policy_settings(args):
+    """The global policy's settings of ``--policy mdgps [--on-policy]``, else None."""
+    if getattr(args, "policy", "none") != "mdgps":
+        return None
+    from diffgcl.algorithms.mdgps import PolicySettings
+
+    return PolicySettings(sample_on_policy=bool(getattr(args, "on_policy", False)))
+
+
 def config_from_args(args):
     from diffgcl.algorithms.presets import get_preset, with_overrides
 
     config = get_preset(args.preset, getattr(args, "schedule", None))
-    if getattr(args, "policy", "none") == "mdgps":
+    if (settings := _policy_settings(args)) is not None:
         import dataclasses
 
-        from diffgcl.algorithms.mdgps import PolicySettings
-
-        settings = PolicySettings(sample_on_policy=bool(getattr(args, "on_policy", False)))
         config = dataclasses.replace(config, policy=settings)
     overrides = list(getattr(args, "set", None) or [])
     if getattr(args, "iterations", None):
@@ -130,7 +136,7 @@ def train_mjcf_command(args) -> int:
         seeds=seeds,
         iterations=args.iterations,
         overrides=args.set,
-        policy=args.policy,
+        policy=_policy_settings(args) or False,
         progress=not args.no_progress,
     )
     report = run.report()
@@ -323,7 +329,6 @@ def register(subparsers) -> None:
                        "(docs/your_robot.md)")  # fmt: skip
     train.add_argument("--dt", type=float, default=None, help="--mjcf: control period (s)")
     train.add_argument("--obs", default=None, help="--mjcf: e.g. state,site:fingertip")
-    train.add_argument("--policy", action="store_true", help="--mjcf: a global policy (MDGPS)")
     train.add_argument("--out", type=Path, default=None, help="run folder")
     train.add_argument("--chunk", type=int, default=5, help="iterations per jitted call")
     train.add_argument("--checkpoint-every", type=int, default=5)
