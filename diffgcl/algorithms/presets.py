@@ -149,11 +149,11 @@ def usv() -> RGCLConfig:
     return RGCLConfig(
         schedule="v2",
         iterations=30,
-        gps=GPSConfig(num_samples=5, kl_step=1.0, init_var=0.01, gauss_newton=True, maxent=True),
+        gps=GPSConfig(num_samples=5, kl_step=1.0, init_var=0.01, gauss_newton=True, maxent=False),
         network=CostNetworkConfig(
             hidden=(),
             n_features=24,
-            action_weight=0.03,
+            action_weight=0.3,
             learn_action_weight=False,
             features="env",
         ),

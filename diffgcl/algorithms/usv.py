@@ -55,8 +55,8 @@ class UsvTaskConfig:
     max_conditions: use at most this many demos (None: all); default_pole_radius: m.
     """
 
-    before: int = 150
-    after: int = 90
+    before: int = 120
+    after: int = 180
     sets: tuple[str, ...] = ("2",)
     observation: str = "full"
     max_conditions: int | None = None
@@ -70,24 +70,52 @@ class UsvTaskConfig:
 # ---- bags and demos -----------------------------------------------------------------------------
 
 
+BUILTIN_SYNTH = {
+    # The seed's Odin sets (19 episodes without LiDAR, 47 with), each recorded until the boat is
+    # back on its course line and has held it a while (end margin past the pole), so that a window
+    # around the pass holds the return too.
+    "full": dict(end_margin_m=(170.0, 230.0), max_duration_s=160.0),
+    "fast": dict(episodes=(3, 5), approach_m=(110.0, 130.0), end_margin_m=(120.0, 140.0)),
+}
+
+
 def builtin_bags(*, fast: bool = False, verbose: bool = True) -> Path:
     """The synthetic Odin-like bag set (the seed's layout: set 1, 19 episodes without LiDAR; set 2,
     47 with it; ``fast``: 3 + 5 short episodes), generated once into the cache."""
     from diffgcl.data.synth import SynthConfig, synthesize
     from diffgcl.runtime import cache_root
 
-    config = (
-        SynthConfig(episodes=(3, 5), approach_m=(110.0, 130.0), end_margin_m=(40.0, 50.0))
-        if fast
-        else SynthConfig()
-    )
-    name = "odin-synth-fast" if fast else "odin-synth"
-    folder = cache_root() / "bags" / name
+    name = "fast" if fast else "full"
+    folder = cache_root() / "bags" / f"odin-usv-{name}"
     if not (folder / "manifest.json").is_file():
         if verbose:
             print(f"writing the synthetic Odin-like bags into {folder}")
-        synthesize(folder, config, overwrite=True)
+        synthesize(folder, SynthConfig(**BUILTIN_SYNTH[name]), overwrite=True)
     return folder
+
+
+def load_bag_demos(folder: Path, topics: Path | None = None, *, verbose: bool = True) -> DemoSet:
+    """Every bag below ``folder`` ingested with the topic map ``topics`` (default: the Odin-like
+    one). Nothing is written (a user's folder is never touched)."""
+    from diffgcl.data.ingest import ingest_bags
+    from diffgcl.data.topics import load_topic_map
+
+    paths = bag_paths(folder)
+    if verbose:
+        print(f"ingesting {len(paths)} bags from {folder}")
+    return ingest_bags(paths, load_topic_map(topics))
+
+
+def builtin_demos(*, fast: bool = False, verbose: bool = True) -> tuple[DemoSet, Path]:
+    """The built-in bags (:func:`builtin_bags`) ingested, cached beside them; returns the demos
+    and the bag folder (whose ``manifest.json`` has the generator's truth)."""
+    folder = builtin_bags(fast=fast, verbose=verbose)
+    cached = folder.parent / f"{folder.name}-demos"
+    if (cached / "demos.npz").is_file():
+        return DemoSet.load(cached), folder
+    demos = load_bag_demos(folder, verbose=verbose)
+    demos.save(cached)
+    return demos, folder
 
 
 def bag_paths(folder: Path) -> list[Path]:
@@ -259,3 +287,273 @@ def heldout_starts(env: UsvEnv, ranges: SituationRanges, key: PRNGKey, n: int) -
     d, off, psi, v, r = (draw(k, getattr(ranges, f)) for k, f in zip(keys, names, strict=True))
     poles = jnp.stack([d, jnp.zeros_like(d)], axis=-1)
     return jax.vmap(env.start_state)(poles, r, v, psi, off)
+
+
+def path_distance_to_demos(X: np.ndarray, demo_X: np.ndarray) -> np.ndarray:
+    """[B] mean distance (m) of each rollout's positions ``X: [B, T+1, 11]`` to the nearest point
+    of the nearest demo path ``demo_X: [N, T+1, 11]``, both relative to their own pole."""
+    P = X[..., :2] - X[:, :1, hull_sim.SL_OBS]
+    Q = demo_X[..., :2] - demo_X[:, :1, hull_sim.SL_OBS]
+    out = np.empty(P.shape[0])
+    for b in range(P.shape[0]):
+        d = np.linalg.norm(P[b][None, :, None, :] - Q[:, None, :, :], axis=-1)  # [N, T+1, T+1]
+        out[b] = d.min(axis=2).mean(axis=1).min()
+    return out
+
+
+def trajectory_metrics(env: UsvEnv, X) -> dict[str, np.ndarray]:
+    """:meth:`UsvEnv.metrics` of each rollout ``X: [B, T+1, 11]``, as NumPy arrays [B]."""
+    return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(env.metrics))(jnp.asarray(X)).items()}
+
+
+def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
+    """The USV figures of rollouts ``X: [B, T+1, 11]`` against the demos ``demo_X``: collision and
+    return-to-course rates, the median minimum clearance and its ratio to the demos' median, the
+    median path distance to the nearest demo, and the share of port passes beside the demos'."""
+    m = trajectory_metrics(env, X)
+    d = trajectory_metrics(env, demo_X)
+    demo_clearance = float(np.median(d["min_clearance"]))
+    clearance = float(np.median(m["min_clearance"]))
+    return {
+        "episodes": int(m["collision"].shape[0]),
+        "collision_rate": float(m["collision"].mean()),
+        "return_to_course_rate": float(m["returned_to_course"].mean()),
+        "on_course_at_end_rate": float(m["back_on_course"].mean()),
+        "success_rate": float(m["success"].mean()),
+        "min_clearance_median_m": clearance,
+        "demo_min_clearance_median_m": demo_clearance,
+        "clearance_ratio_vs_demos": clearance / demo_clearance,
+        "final_cross_track_median_m": float(np.median(m["final_cross_track"])),
+        "path_distance_to_demos_median_m": float(np.median(path_distance_to_demos(X, demo_X))),
+        "port_share": float(np.mean(m["side"] > 0)),
+        "demo_port_share": float(np.mean(d["side"] > 0)),
+    }
+
+
+def policy_tracks(env: UsvEnv, policy, params, x0, key: PRNGKey) -> np.ndarray:
+    """Noise-free-action rollouts [B, T+1, 11] of a global policy from ``x0`` with the env's
+    sensor noise in its observations (the boat's sensors are never noise-free)."""
+    from diffgcl.eval.policy import policy_rollouts
+
+    run = jax.jit(lambda p, x, k: policy_rollouts(env, policy, p, x, k, obs_noise=True))
+    return np.asarray(run(params, jnp.asarray(x0), key).X)
+
+
+# ---- the whole run ------------------------------------------------------------------------------
+
+METHODS = ("rgcl", "expert", "bc")
+
+
+@dataclass(frozen=True)
+class UsvRunConfig:
+    """One run of the USV pipeline.
+
+    task: :class:`UsvTaskConfig`; rgcl: the rGCL + MDGPS settings (None: :func:`~diffgcl.
+    algorithms.presets.usv`); methods: of :data:`METHODS` — ``rgcl`` (learned cost + MDGPS),
+    ``expert`` (MDGPS with the hand-written cost, ``expert_iterations`` iterations), ``bc``
+    (behaviour cloning on the recorded observations); seeds: training seeds (vmapped);
+    heldout: number of held-out situations (drawn with ``heldout_seed``); identify: fit the
+    hull to the demos (else the nominal hull); sysid: its settings.
+    """
+
+    task: UsvTaskConfig = UsvTaskConfig()
+    rgcl: object = None
+    methods: tuple[str, ...] = METHODS
+    seeds: tuple[int, ...] = (0,)
+    heldout: int = 32
+    heldout_seed: int = 1000
+    expert_iterations: int = 15
+    identify: bool = True
+    sysid: object = None
+
+    def __post_init__(self):
+        unknown = set(self.methods) - set(METHODS)
+        if unknown:
+            raise ValueError(f"usv: unknown methods {sorted(unknown)}; choose from {METHODS}")
+
+
+@dataclass
+class UsvRun:
+    """What :func:`run_usv` returns: ``summary`` (JSON-ready figures), the task env on the
+    identified hull (``env``, demos' conditions) and on the true one (``env_true``, held-out
+    starts ``x0_heldout``), the demos in the task layout, and per method its policy, parameters
+    (leading seed axis) and held-out tracks [S, B, T+1, 11]; the rGCL state (``rgcl_state``)."""
+
+    summary: dict
+    env: UsvEnv
+    env_true: UsvEnv
+    demos: DemoSet
+    x0_heldout: np.ndarray
+    policies: dict
+    tracks: dict
+    rgcl_state: object = None
+    rgcl: object = None
+
+
+def _say(verbose: bool, text: str) -> None:
+    if verbose:
+        print(text, flush=True)
+
+
+def _batched(fn, seeds, *args):
+    """``jit(vmap(fn))`` over the seeds' keys; host arrays out and seconds (compile + run)."""
+    import time
+
+    keys = jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
+    in_axes = (0,) + (None,) * len(args)
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(jax.jit(jax.vmap(fn, in_axes=in_axes))(keys, *args))
+    return jax.tree.map(np.asarray, out), time.perf_counter() - t0
+
+
+def identify_hull(demos: DemoSet, config=None, truth=None) -> tuple[object, dict]:
+    """The hull identified from ``demos`` (:func:`diffgcl.data.sysid.identify`) and a summary:
+    the fitted values and, given the ``truth``, the largest relative error."""
+    from diffgcl.data.sysid import identify
+
+    result = identify(demos, config)
+    info = {"fitted": result.values()}
+    if truth is not None:
+        errors = result.relative_errors(truth)
+        info["relative_errors"] = errors
+        info["max_relative_error"] = max(errors.values())
+    return result.params, info
+
+
+def run_usv(
+    demos: DemoSet,
+    config: UsvRunConfig = UsvRunConfig(),
+    *,
+    manifest: Path | None = None,
+    true_params=None,
+    verbose: bool = True,
+) -> UsvRun:
+    """Bags' demos (ingested, world frame) → hull identification → task windows → rGCL + MDGPS on
+    the identified hull, the references (:data:`METHODS`) → every policy rolled out from held-out
+    situations on ``true_params`` (default: the identified hull) with sensor noise, scored by
+    :func:`score_rollouts` against the demos. ``manifest``: a synthetic set's truth (pole radii).
+    """
+    import dataclasses
+    import time
+
+    from diffgcl.algorithms.presets import usv as usv_preset
+
+    t_start = time.perf_counter()
+    task = config.task
+    rgcl_config = config.rgcl if config.rgcl is not None else usv_preset()
+    summary: dict = {"sets": list(task.sets), "observation": task.observation}
+
+    windows = task_windows(demos, task)
+    radii = pole_radii(windows, task.default_pole_radius, manifest)
+    summary["conditions"] = windows.num_episodes
+    summary["horizon"] = task.horizon
+    _say(verbose, f"{windows.num_episodes} demo windows of {task.horizon} steps (sets {task.sets})")
+
+    if config.identify:
+        chosen = [i for i, e in enumerate(demos.episodes) if str(e.get("set")) in task.sets]
+        params, info = identify_hull(demos.subset(np.asarray(chosen)), config.sysid, true_params)
+        summary["hull_identification"] = info
+        _say(
+            verbose,
+            f"hull identified: {info.get('max_relative_error', float('nan')):.3f} "
+            "largest relative error",
+        )
+    else:
+        params = hull_sim.default_params()
+    truth = true_params if true_params is not None else params
+
+    env = make_task_env(windows, radii, params, task)
+    task_demos = usv_demo_set(env, windows, radii)
+    batch = demo_batch_pooled(task_demos)
+    ranges = SituationRanges.of(task_demos, radius=(float(radii.min()), float(radii.max())))
+    probe = make_task_env(windows, radii, truth, task)
+    x0_heldout = np.asarray(
+        heldout_starts(probe, ranges, jax.random.PRNGKey(config.heldout_seed), config.heldout)
+    )
+    env_true = dataclasses.replace(probe, x0=jnp.asarray(x0_heldout, probe.x0.dtype))
+    demo_score = score_rollouts(env, task_demos.X, task_demos.X)
+    summary["demos"] = {
+        k: demo_score[k]
+        for k in (
+            "episodes",
+            "collision_rate",
+            "return_to_course_rate",
+            "on_course_at_end_rate",
+            "min_clearance_median_m",
+            "port_share",
+        )
+    }
+    run = UsvRun(summary, env, env_true, task_demos, x0_heldout, {}, {})
+    eval_key = jax.random.PRNGKey(config.heldout_seed + 1)
+
+    def judge(name: str, policy, params) -> None:
+        S = len(config.seeds)
+        tracks = np.stack(
+            [
+                policy_tracks(
+                    env_true,
+                    policy,
+                    jax.tree.map(lambda a, s=s: jnp.asarray(a[s]), params),
+                    x0_heldout,
+                    jax.random.fold_in(eval_key, s),
+                )
+                for s in range(S)
+            ]
+        )
+        run.policies[name] = (policy, params)
+        run.tracks[name] = tracks
+        score = score_rollouts(env_true, tracks.reshape(-1, *tracks.shape[2:]), task_demos.X)
+        summary[name] = {**summary.get(name, {}), **score}
+        _say(
+            verbose,
+            f"  {name}: collisions {score['collision_rate']:.2f}, back on course "
+            f"{score['return_to_course_rate']:.2f}, clearance {score['min_clearance_median_m']:.1f}"
+            f" m (demos {score['demo_min_clearance_median_m']:.1f} m), path to demos "
+            f"{score['path_distance_to_demos_median_m']:.1f} m",
+        )
+
+    if "rgcl" in config.methods:
+        from diffgcl.algorithms.rgcl import final_rollouts, make_train
+
+        _say(verbose, f"rGCL + MDGPS on the identified hull, seeds {list(config.seeds)}")
+        rgcl = make_train(rgcl_config, env)
+        (state, metrics), seconds = _batched(rgcl.train, config.seeds, batch)
+        Xc = np.asarray(
+            jax.vmap(lambda c: final_rollouts(env, c))(
+                jax.tree.map(jnp.asarray, state.gps.controller)
+            )
+        )
+        ctrl = score_rollouts(env, Xc.reshape(-1, *Xc.shape[2:]), task_demos.X)
+        summary["rgcl"] = {
+            "seconds": seconds,
+            "controllers_on_demo_starts": ctrl,
+            "true_cost_per_iteration": np.asarray(metrics.gps.cost).mean((0, 2)).tolist(),
+        }
+        run.rgcl_state, run.rgcl = state, rgcl
+        judge("rgcl", rgcl.policy_phases.policy, state.policy.params)
+
+    if "expert" in config.methods:
+        from diffgcl.algorithms.mdgps import MDGPSConfig, make_mdgps
+
+        _say(verbose, "MDGPS with the hand-written cost (reference)")
+        gps = dataclasses.replace(
+            rgcl_config.gps, iterations=config.expert_iterations, maxent=False, gauss_newton=False
+        )
+        md = make_mdgps(MDGPSConfig(gps=gps, policy=rgcl_config.policy), env, env.expert_cost)
+        (state, _), seconds = _batched(md.train, config.seeds)
+        summary["expert"] = {"seconds": seconds}
+        judge("expert", md.policy_phases.policy, state.policy.params)
+
+    if "bc" in config.methods:
+        from diffgcl.algorithms.bc import BCConfig, make_bc
+
+        _say(verbose, "behaviour cloning on the recorded observations (baseline)")
+        dtype = env.x0.dtype
+        policy, fit = make_bc(BCConfig(network=rgcl_config.policy.network), env.dO, env.dU, dtype)
+        O, U, mask = (jnp.asarray(a, dtype) for a in (task_demos.O, task_demos.U, task_demos.mask))
+        (state, _), seconds = _batched(lambda k: fit(k, O, U, mask), config.seeds)
+        summary["bc"] = {"seconds": seconds}
+        judge("bc", policy, state.params)
+
+    summary["wall_seconds"] = time.perf_counter() - t_start
+    return run

@@ -102,6 +102,7 @@ class UsvEnv:
     horizon: int = 240
     course_tolerance: float = 5.0
     heading_tolerance: float = float(np.deg2rad(20.0))
+    return_heading_tolerance: float = float(np.deg2rad(45.0))
     name: str = "usv"
     dX: int = DX
     dU: int = hull_sim.DU
@@ -182,6 +183,17 @@ class UsvEnv:
         """Cross-track and heading error within the tolerances (bool)."""
         return on_course(x, 0.0, self.course_tolerance, self.heading_tolerance)
 
+    def returned_to_course(self, X: Array) -> Array:
+        """X: [T+1, 11] -> bool: after the closest approach to the pole the boat comes back onto
+        the course line (cross-track below ``course_tolerance``) heading along it within
+        ``return_heading_tolerance`` (human demonstrators cross back at 20–40° and settle later
+        than a pass window lasts)."""
+        k = jnp.argmin(jax.vmap(self.clearance)(X))
+        on = jax.vmap(
+            lambda x: on_course(x, 0.0, self.course_tolerance, self.return_heading_tolerance)
+        )(X)
+        return jnp.any(on & (jnp.arange(X.shape[0]) >= k))
+
     def success(self, X: Array) -> Array:
         """X: [T+1, 11] -> bool: no collision at any state, back on course at the end."""
         no_collision = jnp.min(jax.vmap(self.clearance)(X)) > 0.0
@@ -189,7 +201,8 @@ class UsvEnv:
 
     def metrics(self, X: Array) -> dict[str, Array]:
         """X: [T+1, 11] -> min clearance (m), final cross-track (m) and heading error (rad),
-        largest cross-track excursion (m), collision, back on course, the side passed at the
+        largest cross-track excursion (m), collision, back on course at the end, returned to the
+        course after the pass (:meth:`returned_to_course`), the side passed at the
         closest approach (+1: the boat is to the left of the pole, y above it, i.e. it swerved to
         port; −1: to starboard) and success."""
         clearance = jax.vmap(self.clearance)(X)
@@ -203,6 +216,7 @@ class UsvEnv:
             "max_cross_track": jnp.max(jnp.abs(X[:, hull_sim.IX_PY])),
             "collision": clearance[k] <= 0.0,
             "back_on_course": self.back_on_course(X[-1]),
+            "returned_to_course": self.returned_to_course(X),
             "side": side,
             "success": self.success(X),
         }
