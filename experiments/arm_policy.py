@@ -58,14 +58,14 @@ def starts(table) -> np.ndarray:
     return np.concatenate([q, np.zeros_like(q)], axis=1)
 
 
-def policy_settings(fast: bool):
+def policy_settings(fast: bool, s_steps: int = 300):
     from diffgcl.algorithms.mdgps import PolicySettings
     from diffgcl.policies.mdgps import SStepConfig
     from diffgcl.policies.network import PolicyConfig
 
     return PolicySettings(
         network=PolicyConfig(hidden=(64, 64), init_var=0.1),
-        s_step=SStepConfig(n_steps=100 if fast else 300, batch_size=128, learning_rate=1e-3),
+        s_step=SStepConfig(n_steps=100 if fast else s_steps, batch_size=128, learning_rate=1e-3),
     )
 
 
@@ -166,8 +166,9 @@ def main(argv=None) -> int:
     parser.add_argument("--fast", action="store_true", help="2 seeds, fewer iterations")
     parser.add_argument("--methods", default="expert,mdgps,rgcl,bc")
     parser.add_argument("--noisy-samples", type=int, default=5, help="noisy rollouts per start")
-    parser.add_argument("--mdgps-iterations", type=int, default=20)
+    parser.add_argument("--mdgps-iterations", type=int, default=30)
     parser.add_argument("--kl-step", type=float, default=0.2)
+    parser.add_argument("--s-steps", type=int, default=300, help="Adam steps per S-step")
     parser.add_argument("--no-timing", action="store_true")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None, help="plots of the policies' rollouts")
@@ -193,7 +194,7 @@ def main(argv=None) -> int:
     heldout = starts(HELDOUT_TUNE if args.split == "tune" else HELDOUT_REPORT)
     env = make_env("arm", x0=starts(TRAIN_STARTS))
     x0_sets = {"train": starts(TRAIN_STARTS), "heldout": heldout}
-    settings = policy_settings(args.fast)
+    settings = policy_settings(args.fast, args.s_steps)
     summary: dict = {
         "split": args.split,
         "seeds": seeds,
@@ -278,9 +279,7 @@ def main(argv=None) -> int:
 
         for name, (policy, params) in policies.items():
             p0 = jax.tree.map(lambda a: a[0], params)
-            policy_paths(
-                env, policy, p0, x0_sets, args.out / f"arm_policy_{name}.png", title=name
-            )
+            policy_paths(env, policy, p0, x0_sets, args.out / f"arm_policy_{name}.png", title=name)
         print(f"plots in {args.out}")
     summary["wall_seconds"] = time.perf_counter() - t_start
     if args.json is not None:
