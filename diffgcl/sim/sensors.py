@@ -356,9 +356,14 @@ def noisy_pole_beams(
     LiDAR: the returns' phase along the pole (uniform: the first return within one spacing b of
     the right flank, then one every b), each outermost return dropped with probability
     ``lidar_dropout`` (the flank one spacing narrower; no return left: the pole is not seen),
-    and Gaussian range noise (see :class:`PoleSensorModel`) on the beams that see it. Radar:
-    range and bearing noise of the return (near a sector edge the neighbouring beam reads it),
-    and with probability 1 − ``radar_detection`` no return (every beam reads the radar range).
+    and Gaussian range noise (see :class:`PoleSensorModel`) on the beams that see it; dropouts
+    inside the silhouette are left out (another return of the beam still reads the pole). Radar:
+    range (at least 1 m, as the generator's) and bearing noise of the return (near a sector edge
+    the neighbouring beam reads it), and with probability 1 − ``radar_detection`` no return
+    (every beam reads the radar range). Before both, the pose error of the state estimate that
+    ingestion moves each scan with (``pose_position_std``, ``pose_heading_std``). Each call is
+    one independent draw: the ingested radar holds one sweep for 2 s, so its error is
+    correlated from step to step where this one is not.
     """
     k_pose, k_phase, k_drop, k_lidar, k_radar, k_seen = jax.random.split(key, 6)
     dtype = pole.dtype
@@ -372,7 +377,9 @@ def noisy_pole_beams(
     first = -radius + phase * spacing
     last = first + spacing * jnp.floor((radius - first) / spacing)
     dropped = jax.random.bernoulli(k_drop, model.lidar_dropout, (2,)).astype(dtype)
-    returns = (first + dropped[0] * spacing, last - dropped[1] * spacing)
+    single = last - first < 0.5 * spacing  # one return on the pole: one draw drops it
+    dropped_last = jnp.where(single, dropped[0], dropped[1])
+    returns = (first + dropped[0] * spacing, last - dropped_last * spacing)
     lidar = lidar_pole_ranges(model, layout, pole, radius, returns)
     std = jnp.sqrt(model.lidar_noise_std**2 + (model.lidar_spacing_noise * spacing) ** 2)
     noisy = lidar + std * jax.random.normal(k_lidar, lidar.shape, dtype)
@@ -382,7 +389,7 @@ def noisy_pole_beams(
     rel = pole - mount
     r = jnp.sqrt(jnp.maximum(rel @ rel, 1e-12)) + model.radar_range_std * z[0]
     bearing = jnp.arctan2(rel[1], rel[0]) + model.radar_bearing_std * z[1]
-    echo = mount + jnp.maximum(r, 0.0) * jnp.stack([jnp.cos(bearing), jnp.sin(bearing)])
+    echo = mount + jnp.maximum(r, 1.0) * jnp.stack([jnp.cos(bearing), jnp.sin(bearing)])
     radar = radar_pole_ranges(layout, echo)
     seen = jax.random.uniform(k_seen, (), dtype) < model.radar_detection
     return jnp.concatenate([lidar, jnp.where(seen, radar, layout.radar_range)])
