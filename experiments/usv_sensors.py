@@ -34,52 +34,17 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from diffgcl.data.ingest import IngestWarning, ingest_bags  # noqa: E402
 from diffgcl.data.synth import SynthConfig, synthesize  # noqa: E402
 from diffgcl.data.task_frame import to_task_frame  # noqa: E402
-from diffgcl.envs.usv import IX_RADIUS, make_usv_env, pole_ranges  # noqa: E402
-from diffgcl.eval.sensors import lidar_agreement, radar_agreement  # noqa: E402
+from diffgcl.envs.usv import make_usv_env  # noqa: E402
+from diffgcl.eval.sensors import demo_beams, lidar_agreement, radar_agreement  # noqa: E402
 from diffgcl.runtime import enable_compilation_cache  # noqa: E402
 
 LIDAR_BANDS = ((0.0, 10.0), (10.0, 20.0), (20.0, 30.0), (30.0, 40.0), (40.0, 50.0), (50.0, 60.0))
 RADAR_BANDS = ((0.0, 15.0), (15.0, 40.0), (40.0, 80.0), (80.0, 300.0))
-
-
-def episode_beams(demos, radii, seed: int = 0) -> dict[str, np.ndarray]:
-    """Ingested and simulated beams at every valid, collision-free step of ``demos`` (task
-    frame, hull layout) with pole radii ``radii: [N]``: dict of ``ingested``, ``simulated``,
-    ``noisy``, ``exact`` ([K, 48]), ``distance`` (mast to pole centre, [K]), ``episode`` [K],
-    ``confirmed`` [K] (at or after the episode's first ingested radar reading)."""
-    env = make_usv_env(np.concatenate([demos.X[:, 0], radii[:, None]], axis=1))
-    nL, nB = env.layout.lidar_beams, env.layout.num_beams
-    obs = jax.jit(jax.vmap(env.obs))
-    noisy = jax.jit(jax.vmap(env.obs))
-    exact = jax.jit(jax.vmap(lambda x: pole_ranges(env.layout, x[:IX_RADIUS], x[IX_RADIUS])))
-    clearance = jax.jit(jax.vmap(env.clearance))
-    out: dict[str, list] = {k: [] for k in ("ingested", "simulated", "noisy", "exact")}
-    out.update(distance=[], episode=[], confirmed=[])
-    key = jax.random.PRNGKey(seed)
-    for i in range(demos.num_episodes):
-        X = np.concatenate([demos.X[i], np.full((demos.X.shape[1], 1), radii[i])], axis=1)
-        keep = (demos.mask[i] > 0) & (np.asarray(clearance(jnp.asarray(X))) > 0)
-        X, O = jnp.asarray(X[keep]), demos.O[i][keep]
-        key, k_obs = jax.random.split(key)
-        out["ingested"].append(O[:, :nB])
-        out["simulated"].append(np.asarray(obs(X))[:, :nB])
-        out["noisy"].append(np.asarray(noisy(X, jax.random.split(k_obs, X.shape[0])))[:, :nB])
-        out["exact"].append(np.asarray(exact(X)))
-        pole = np.asarray(X[:, 8:10] - X[:, :2])
-        c, s = np.cos(X[:, 2]), np.sin(X[:, 2])
-        along, across = c * pole[:, 0] + s * pole[:, 1], -s * pole[:, 0] + c * pole[:, 1]
-        out["distance"].append(np.hypot(along - env.layout.origin[0], across))
-        radar_seen = (O[:, nL:nB] < env.layout.radar_range).any(axis=1)
-        first = int(np.argmax(radar_seen)) if radar_seen.any() else len(O)
-        out["confirmed"].append(np.arange(len(O)) >= first)
-        out["episode"].append(np.full(len(O), i))
-    return {k: np.concatenate(v) for k, v in out.items()}
 
 
 def lag1_autocorrelation(err: np.ndarray, episode: np.ndarray) -> float:
@@ -188,7 +153,7 @@ def main(argv=None) -> dict:
             warnings.simplefilter("ignore", IngestWarning)
             demos = to_task_frame(ingest_bags(list(synth.bags)))
     radii = np.array([e.profile.pole_radius for e in synth.episodes])
-    beams = episode_beams(demos, radii, args.seed)
+    beams = demo_beams(demos, radii, jax.random.PRNGKey(args.seed))
     result = report(beams, make_usv_env().layout)
     result.update(episodes=n, seed=args.seed, wall_seconds=time.perf_counter() - t0)
     print_report(result)
