@@ -22,10 +22,15 @@ Observation (what the policy sees; the cost learns on the full state):
 * ``"radar"`` — the same without the LiDAR beams (the seed's set 1 had no LiDAR); dO = 22;
 * ``"ranges"`` — the ablation without course information: ranges and ν only; dO = 51.
 
-Ranges come from :func:`pole_ranges`, the exact intersection of the layout's horizontal rays with
-the pole (a vertical capsule, i.e. a circle at mast height) — the same numbers as ``mjx.ray`` in
-the hull's MJCF scene (tested), at a fraction of the cost, which matters when the policy's
-observations are needed at every sample state and differentiated for its linearisation.
+Ranges are what ingestion makes of the boat's recorded sensors (:class:`~diffgcl.sim.sensors.
+PoleSensorModel`, :func:`~diffgcl.sim.sensors.pole_beams`), so that a policy trained on them
+reads demos' observations alike: the LiDAR beams read the pole's scan returns as discs (about
+0.25 m nearer than its surface), the radar beams a point target at the pole's centre in the one
+sector that holds it; ``obs(x, key)`` draws their noise, dropouts and missed detections. The
+noise-free beams are differentiable in the state where they see the pole (MDGPS linearises the
+policy through them). :func:`pole_ranges`, the exact intersection of the layout's rays with the
+pole (the same numbers as ``mjx.ray`` in the hull's MJCF scene, tested), stays as the reference
+geometry.
 
 Success (:meth:`UsvEnv.success`): the hull outline never touches the pole, and at the end the boat
 is back on course (cross-track below ``course_tolerance``, heading error below
