@@ -44,7 +44,7 @@ def fast_configs():
         ],
     )
     task = UsvTaskConfig(before=100, after=140)
-    main = UsvRunConfig(task=task, rgcl=rgcl, heldout=8, expert_iterations=4)
+    main = UsvRunConfig(task=task, rgcl=rgcl, heldout=32, expert_iterations=4)
     radar = dataclasses.replace(
         main,
         task=dataclasses.replace(task, sets=("1", "2"), observation="radar"),
@@ -91,8 +91,10 @@ def main(argv=None) -> int:
     parser.add_argument("--bags", type=Path, default=None, help="your bags (default: built-in)")
     parser.add_argument("--topics", type=Path, default=None, help="topic map YAML for --bags")
     parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--heldout", type=int, default=32, help="held-out situations")
+    parser.add_argument("--heldout", type=int, default=256, help="held-out situations")
     parser.add_argument("--no-radar", action="store_true", help="skip the radar-only variant")
+    parser.add_argument("--methods", default=None, help="of rgcl, expert, bc (default: all)")
+    parser.add_argument("--conditions", type=int, default=None, help="use the first N demos")
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None, help="plots (a new or own folder)")
@@ -116,6 +118,12 @@ def main(argv=None) -> int:
     main_cfg, radar_cfg = (
         fast_configs() if args.fast else full_configs(range(args.seeds), args.heldout)
     )
+    if args.methods is not None:
+        main_cfg = dataclasses.replace(main_cfg, methods=tuple(args.methods.split(",")))
+    if args.conditions is not None:
+        main_cfg = dataclasses.replace(
+            main_cfg, task=dataclasses.replace(main_cfg.task, max_conditions=args.conditions)
+        )
     if args.set:
         rgcl = with_overrides(main_cfg.rgcl or usv_preset(), args.set)
         main_cfg = dataclasses.replace(main_cfg, rgcl=rgcl)

@@ -175,7 +175,7 @@ def usv() -> RGCLConfig:
         pretrain_with_samples=True,
         freeze_last=5,
         policy=PolicySettings(
-            network=PolicyConfig(hidden=(64, 64), init_var=0.01),
+            network=PolicyConfig(hidden=(64, 64), init_var=0.01, obs_std_rel_floor=0.1),
             s_step=SStepConfig(n_steps=300, batch_size=256, learning_rate=1e-3),
             obs_noise=True,
         ),

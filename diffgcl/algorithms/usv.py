@@ -307,24 +307,36 @@ def trajectory_metrics(env: UsvEnv, X) -> dict[str, np.ndarray]:
 
 
 def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
-    """The USV figures of rollouts ``X: [B, T+1, 11]`` against the demos ``demo_X``: collision and
-    return-to-course rates, the median minimum clearance and its ratio to the demos' median, the
-    median path distance to the nearest demo, and the share of port passes beside the demos'."""
+    """The USV figures of rollouts ``X: [B, T'+1, 11]`` against the demos ``demo_X: [N, T+1, 11]``
+    (T' ≥ T: the evaluation may run past the demos' window).
+
+    ``return_to_course_rate``: on course at the end (cross-track and heading within the env's
+    tolerances, :meth:`UsvEnv.back_on_course`); ``returned_in_window_rate``: back at the course
+    line within the demos' window (:meth:`UsvEnv.returned_to_course` on the first T+1 states, the
+    figure the demos have too); collision rate; the median minimum clearance and its ratio to the
+    demos' median; the median path distance to the nearest demo (first T+1 states); the share of
+    port passes beside the demos'."""
+    X = np.asarray(X)
+    T1 = demo_X.shape[1]
     m = trajectory_metrics(env, X)
+    w = trajectory_metrics(env, X[:, :T1])
     d = trajectory_metrics(env, demo_X)
     demo_clearance = float(np.median(d["min_clearance"]))
     clearance = float(np.median(m["min_clearance"]))
     return {
         "episodes": int(m["collision"].shape[0]),
         "collision_rate": float(m["collision"].mean()),
-        "return_to_course_rate": float(m["returned_to_course"].mean()),
-        "on_course_at_end_rate": float(m["back_on_course"].mean()),
+        "return_to_course_rate": float(m["back_on_course"].mean()),
+        "returned_in_window_rate": float(w["returned_to_course"].mean()),
+        "demo_returned_in_window_rate": float(d["returned_to_course"].mean()),
         "success_rate": float(m["success"].mean()),
         "min_clearance_median_m": clearance,
         "demo_min_clearance_median_m": demo_clearance,
         "clearance_ratio_vs_demos": clearance / demo_clearance,
         "final_cross_track_median_m": float(np.median(m["final_cross_track"])),
-        "path_distance_to_demos_median_m": float(np.median(path_distance_to_demos(X, demo_X))),
+        "path_distance_to_demos_median_m": float(
+            np.median(path_distance_to_demos(X[:, :T1], demo_X))
+        ),
         "port_share": float(np.mean(m["side"] > 0)),
         "demo_port_share": float(np.mean(d["side"] > 0)),
     }
@@ -352,7 +364,8 @@ class UsvRunConfig:
     algorithms.presets.usv`); methods: of :data:`METHODS` — ``rgcl`` (learned cost + MDGPS),
     ``expert`` (MDGPS with the hand-written cost, ``expert_iterations`` iterations), ``bc``
     (behaviour cloning on the recorded observations); seeds: training seeds (vmapped);
-    heldout: number of held-out situations (drawn with ``heldout_seed``); identify: fit the
+    heldout: number of held-out situations (drawn with ``heldout_seed``), each rolled out for
+    the window's horizon plus ``eval_extra`` steps (to judge the return); identify: fit the
     hull to the demos (else the nominal hull); sysid: its settings.
     """
 
@@ -360,8 +373,9 @@ class UsvRunConfig:
     rgcl: object = None
     methods: tuple[str, ...] = METHODS
     seeds: tuple[int, ...] = (0,)
-    heldout: int = 32
+    heldout: int = 256
     heldout_seed: int = 1000
+    eval_extra: int = 150
     expert_iterations: int = 15
     identify: bool = True
     sysid: object = None
@@ -466,7 +480,7 @@ def run_usv(
     task_demos = usv_demo_set(env, windows, radii)
     batch = demo_batch_pooled(task_demos)
     ranges = SituationRanges.of(task_demos, radius=(float(radii.min()), float(radii.max())))
-    probe = make_task_env(windows, radii, truth, task)
+    probe = make_task_env(windows, radii, truth, task, horizon=task.horizon + config.eval_extra)
     x0_heldout = np.asarray(
         heldout_starts(probe, ranges, jax.random.PRNGKey(config.heldout_seed), config.heldout)
     )
@@ -478,11 +492,12 @@ def run_usv(
             "episodes",
             "collision_rate",
             "return_to_course_rate",
-            "on_course_at_end_rate",
+            "returned_in_window_rate",
             "min_clearance_median_m",
             "port_share",
         )
     }
+    summary["evaluation_horizon"] = task.horizon + config.eval_extra
     run = UsvRun(summary, env, env_true, task_demos, x0_heldout, {}, {})
     eval_key = jax.random.PRNGKey(config.heldout_seed + 1)
 

@@ -3,7 +3,7 @@ printing; the pipeline is :func:`diffgcl.algorithms.usv.run_usv`, the pictures
 :func:`diffgcl.viz.usv.save_usv_plots`).
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
-                [--seeds 1] [--heldout 32] [--fast] [--set a.b=value] [--out runs/usv]
+                [--seeds 1] [--heldout 256] [--fast] [--set a.b=value] [--out runs/usv]
 
 Without ``--bags`` it runs on the built-in synthetic Odin-like bags (written once into the
 cache) and judges the policies on the generator's true hull; with them, on the identified hull.
@@ -73,7 +73,7 @@ def register(subparsers) -> None:
     p.add_argument("--methods", default="rgcl,expert,bc", help="of rgcl, expert, bc")
     p.add_argument("--seeds", type=int, default=1)
     p.add_argument("--seed", type=int, default=0, help="first seed")
-    p.add_argument("--heldout", type=int, default=32, help="held-out situations to judge")
+    p.add_argument("--heldout", type=int, default=256, help="held-out situations to judge")
     p.add_argument("--fast", action="store_true", help="few short episodes, few iterations")
     p.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     p.add_argument("--out", type=Path, default=Path("runs/usv"))
