@@ -334,3 +334,37 @@ def test_default_preset_reaches_upright_on_the_arm(schedule):
         jax.config.update("jax_enable_x64", True)
     assert success.sum() >= 7, success
     assert reopt_success.sum() >= 6, reopt_success
+
+
+def test_v1_step_is_judged_under_one_cost(slider):
+    """A cost update that only adds a constant leaves v1's step multiplier unchanged: the first
+    GPS iteration after an update judges its step with one cost (the GCL objective does not fix
+    the cost's constant, so the drift of the constant must not set the step)."""
+    env, demos = slider
+    config = tiny_config(
+        "v1", iterations=2, network=CostNetworkConfig(hidden=(), n_features=8, action_weight=1e-2)
+    )
+    rgcl = make_train(config, env)
+    key_init, key_loop = rgcl.split_key(jax.random.PRNGKey(2))
+    run = jax.jit(rgcl.run, static_argnums=3)
+    state, _ = run(rgcl.init(key_init, demos), key_loop, demos, 1)
+
+    # An update that adds a constant: an offset of b orthogonal to the range of M in the
+    # residual M z + m adds 2 mᵀδ + ‖δ‖² to every step's cost and changes nothing else.
+    params = state.cost.params
+    M, m = rgcl.network.affine_residual_map(params)
+    basis, _ = np.linalg.qr(np.asarray(M), mode="complete")
+    delta = 3.0 * jnp.asarray(basis[:, M.shape[1]])
+    shifted = params.replace(net={**params.net, "b": params.net["b"] + delta})
+    x = jax.random.normal(jax.random.PRNGKey(0), (7, env.dX))
+    u = jax.random.normal(jax.random.PRNGKey(1), (7, env.dU))
+    cost = jax.vmap(rgcl.network.cost, in_axes=(None, 0, 0))
+    shift = cost(shifted, x, u) - cost(params, x, u)
+    np.testing.assert_allclose(shift, 2.0 * m @ delta + delta @ delta, rtol=1e-9)
+    assert float(shift[0]) > 1.0
+
+    after_update = state.replace(cost=state.cost.replace(params=shifted))
+    _, m_plain = run(state, key_loop, demos, 1)
+    _, m_shift = run(after_update, key_loop, demos, 1)
+    assert int(state.gps.iteration) == 2  # the step is adapted (not the first GPS iteration)
+    np.testing.assert_allclose(m_shift.gps.step_mult, m_plain.gps.step_mult, rtol=1e-9)

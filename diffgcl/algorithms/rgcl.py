@@ -5,7 +5,9 @@ sample-based MaxEnt IOC cost update of GCL (:mod:`diffgcl.costs.gcl`, Finn et al
 schedules (the seed's Fig. 3.3):
 
 * **v1** — per rGCL iteration, ``gps_per_update`` full GPS iterations with the current cost
-  (sample, fit dynamics, expand, adapt the step, C-step), then one cost update;
+  (sample, fit dynamics, expand, adapt the step, C-step), then one cost update; the step of the
+  first GPS iteration after an update is judged with the cost before it (the one its controller
+  was optimised for, ``CostState.prev_params``), so that every step is judged under one cost;
 * **v2** — GPS's outer loop (sample + fit dynamics), the KL step adapted with the *previous*
   cost (Finn et al. compute it before the cost changes), the cost update, then GPS's inner loop
   (expand the *new* cost, C-step).
@@ -186,11 +188,14 @@ class DemoBatch:
 @struct.dataclass
 class CostState:
     """The learned cost and its optimiser: params (:class:`CostParams`), opt_state (optax state
-    of ``params.net``, learning rate inside), step: int32 gradient steps taken."""
+    of ``params.net``, learning rate inside), step: int32 gradient steps taken; prev_params: the
+    parameters before the last update — the cost that the current controllers were optimised
+    for, with which v1 judges the step of its first GPS iteration after an update."""
 
     params: CostParams
     opt_state: optax.OptState
     step: Array
+    prev_params: CostParams
 
 
 @struct.dataclass
@@ -339,7 +344,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             grads, metrics = jax.grad(loss, has_aux=True)(cost.params.net)
             updates, opt_state = optimiser.update(grads, cost.opt_state, cost.params.net)
             net = optax.apply_updates(cost.params.net, updates)
-            new = CostState(
+            new = cost.replace(
                 params=cost.params.replace(net=net), opt_state=opt_state, step=cost.step + 1
             )
             return new, metrics.replace(grad_norm=optax.tree.norm(grads))
@@ -365,7 +370,10 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         params = params.replace(norm=norm)
         optimiser = _make_optimiser(gcl_cfg, hp.cost_lr)
         cost = CostState(
-            params=params, opt_state=optimiser.init(params.net), step=jnp.zeros((), jnp.int32)
+            params=params,
+            opt_state=optimiser.init(params.net),
+            step=jnp.zeros((), jnp.int32),
+            prev_params=params,
         )
         Kc = config.buffer_controllers
         empty = init_buffer(N * Kc, Kc, T, dX, dU, dtype)
@@ -381,6 +389,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
                 pre_buffer = jax.vmap(buffer_add)(buffer, gps.controller, samples.X, samples.U)
             samples_w, demos_w = weighted_sets(pre_buffer, demos, key_samples)
             cost, _ = optimise(cost, key_pretrain, demos_w, samples_w, gcl_cfg.pretrain_steps)
+            cost = cost.replace(prev_params=cost.params)
         policy = None
         if policy_phases is not None:
             # The observation normaliser comes from what the demonstrator's sensors would show.
@@ -408,6 +417,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         key_sets, key_opt = jax.random.split(key)
         samples_w, demos_w = weighted_sets(buffer, demos, key_sets, samples, sample_ctrl)
         new, metrics = optimise(cost, key_opt, demos_w, samples_w, gcl_cfg.n_steps)
+        new = new.replace(prev_params=cost.params)
         update = state.iteration < config.iterations - config.freeze_last
         new = jax.tree.map(lambda a, b: jnp.where(update, a, b), new, cost)
         metrics = jax.tree.map(lambda m: jnp.where(update, m, 0.0), metrics)
@@ -464,12 +474,21 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         key_gps, key_cost = jax.random.split(key)
         params = state.cost.params
 
-        def gps_iteration(carry, key):
+        def gps_iteration(carry, inputs):
             gps, policy, buffer, _, _ = carry
+            key, first = inputs
             key_sample, key_policy = jax.random.split(key)
             samples, anchor, proposal = draw_samples(gps, policy, key_sample)
             quad = phases.expand(residual(params), samples)
-            step_mult = adapt(state, gps, samples, quad, anchor)
+            # Each step is judged under one cost: the one its controller was optimised for (J_prev
+            # and J_pred were expanded with it) — on the first GPS iteration after a cost update,
+            # the cost before that update. The GCL objective does not fix the cost's constant, so
+            # mixing two costs here would let the cost's drift set the step.
+            judged = jax.tree.map(
+                lambda old, new: jnp.where(first, old, new), state.cost.prev_params, params
+            )
+            quad_judged = phases.expand(residual(judged), samples)
+            step_mult = adapt(state, gps, samples, quad_judged, anchor)
             buffer = jax.vmap(buffer_add)(buffer, proposal, samples.X, samples.U)
             new_gps, m = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
             policy, pm = s_step(policy, key_policy, samples, new_gps)
@@ -482,7 +501,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         )
         carry = (state.gps, state.policy, state.buffer, empty, state.gps.controller)
         (gps, policy, buffer, samples, proposal), (gps_metrics, lc, sample_X, pm) = lax.scan(
-            gps_iteration, carry, jax.random.split(key_gps, G)
+            gps_iteration, carry, (jax.random.split(key_gps, G), jnp.arange(G) == 0)
         )
         # The model variant generates from the last fitted model and the controller it sampled.
         cost, gcl_metrics, updated = cost_step(
