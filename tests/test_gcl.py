@@ -293,6 +293,21 @@ def test_demo_controller_recovers_a_known_controller():
     np.testing.assert_allclose(fitted.cov, ctrl.cov, rtol=0.1)
 
 
+def test_demo_controller_covariance_is_unbiased_for_few_demos():
+    """Ten demos per fit, as on the arm: the residual covariance divided by the residual degrees
+    of freedom (N minus the hat matrix's trace) is unbiased at every step — including t = 0 and
+    t = 1, where the demos share a state component and the gains use fewer degrees of freedom;
+    the maximum-likelihood ÷N gave (N − p)/N of it (p = 1 + the spanned state directions)."""
+    ctrl = gaussian_controller(0.3, 0.25)
+    n_fits, N = 4000, 10
+    keys = jax.random.split(jax.random.key(5), n_fits * N).reshape(n_fits, N)
+    X, U = jax.vmap(lambda k: rollouts(k, ctrl))(keys)
+    fit = jax.jit(jax.vmap(lambda x, u: fit_demo_controller(x, u, ridge=1e-6, cov_floor=0.0)))
+    ratio = np.asarray(fit(X, U).cov[..., 0, 0]).mean(0) / 0.25  # [T]
+    # The Monte-Carlo standard error of the mean ratio is about sqrt(2/(N − p)/n_fits) ≈ 1 %.
+    np.testing.assert_allclose(ratio, 1.0, atol=0.04)
+
+
 def test_model_log_density_matches_scipy_and_samples_feed_the_learner():
     A = jnp.broadcast_to(jnp.array([[1.0, 0.1], [0.0, 1.0]]), (T, dX, dX))
     B = jnp.broadcast_to(jnp.array([[0.0], [0.1]]), (T, dX, dU))

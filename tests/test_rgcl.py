@@ -205,16 +205,15 @@ def test_cli_train_eval_plot_on_stand_in(slider, tmp_path, monkeypatch):
     import argparse
     import json
 
-    import diffgcl.envs
     from diffgcl.algorithms import presets
     from diffgcl.cli import rgcl as rgcl_cli
 
     env, demos = slider
-    monkeypatch.setattr(diffgcl.envs, "make_env", lambda name, **kw: env)
+    monkeypatch.setattr(rgcl_cli, "env_from_args", lambda args, recorded=None: (env, {}))
     from diffgcl.algorithms import runner
 
-    # Both readers (the command's and load_run's): the built-in arm demos must never be
-    # generated for the stand-in (they would be cached under the arm's name).
+    # Both readers (the command's and load_run's): no expert demos are generated for the
+    # stand-in (they would be cached, under the stand-in's own task key).
     for module in (rgcl_cli, runner):
         monkeypatch.setattr(module, "load_demo_batch", lambda path, env: demos)
     monkeypatch.setitem(presets.PRESETS, "tiny", lambda: tiny_config("v2", iterations=3))
@@ -368,3 +367,35 @@ def test_v1_step_is_judged_under_one_cost(slider):
     _, m_shift = run(after_update, key_loop, demos, 1)
     assert int(state.gps.iteration) == 2  # the step is adapted (not the first GPS iteration)
     np.testing.assert_allclose(m_shift.gps.step_mult, m_plain.gps.step_mult, rtol=1e-9)
+
+
+def test_builtin_demos_are_cached_by_task(tmp_path, monkeypatch):
+    """The built-in demos' cache key is the task (MJCF, start, target, horizon, ...) and the
+    expert's settings: another start gets its own demos, the same task loads the cached ones."""
+    from diffgcl.algorithms import expert, gps_runner
+
+    monkeypatch.setenv("DIFFGCL_CACHE", str(tmp_path))
+    env = Slider()
+
+    @dataclass(frozen=True)
+    class OtherStart(Slider):
+        def initial_states(self):
+            return jnp.array([[-1.0, 1.0, 0.0, 0.0]])
+
+    other = OtherStart()
+    assert expert.task_fingerprint(env) != expert.task_fingerprint(other)
+    a = expert.builtin_demos(env, num_demos=4, verbose=False)
+    b = expert.builtin_demos(other, num_demos=4, verbose=False)
+    np.testing.assert_allclose(a.X[:, 0], np.broadcast_to([1.5, -1.0, 0.0, 0.0], (4, 4)))
+    np.testing.assert_allclose(b.X[:, 0], np.broadcast_to([-1.0, 1.0, 0.0, 0.0], (4, 4)))
+    folders = sorted(p.name for p in (tmp_path / "demos").iterdir())
+    assert len(folders) == 2
+    assert all(f.startswith("slider-gps-expert-4-it30-seed0-") for f in folders)
+    for f in folders:
+        assert "task" in (tmp_path / "demos" / f / "task.json").read_text()
+
+    def no_expert(*args, **kwargs):
+        raise AssertionError("the cached demos should have been loaded")
+
+    monkeypatch.setattr(gps_runner, "run_seeds", no_expert)
+    np.testing.assert_array_equal(expert.builtin_demos(env, num_demos=4).X, a.X)

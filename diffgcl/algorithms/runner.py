@@ -383,13 +383,49 @@ def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=
 
 
 def load_demo_batch(path: Path | None, env):
-    """The demos at ``path`` (a DemoSet folder) or the built-in ones, as a DemoBatch."""
+    """The demos at ``path`` (a DemoSet folder) or the built-in ones for ``env``'s task, as a
+    DemoBatch; demos of another env, horizon or state size are a one-line error."""
     from diffgcl.algorithms.expert import builtin_demos
     from diffgcl.algorithms.rgcl import demo_batch
-    from diffgcl.data.demos import DemoSet
+    from diffgcl.data.demos import DemoError, DemoSet
 
     demos = builtin_demos(env) if path is None else DemoSet.load(path)
+    where = "built-in demos" if path is None else str(path)
+    expected = (env.horizon + 1, env.dX)
+    if demos.env != env.name or demos.X.shape[1:] != expected or demos.U.shape[2] != env.dU:
+        raise DemoError(
+            f"{where}: demos of env {demos.env!r} with X{demos.X.shape}, U{demos.U.shape}; the "
+            f"{env.name} env needs X[N, {expected[0]}, {expected[1]}], U[N, {env.horizon}, "
+            f"{env.dU}]"
+        )
     return demo_batch(demos, int(np.asarray(env.initial_states()).shape[0]))
+
+
+RUN_ENV = "env.json"
+
+
+def write_run_env(out: Path, env, options: dict, demos: Path | None) -> None:
+    """Record in a run folder the env a run trains on (its name, the options it was made with,
+    the task's fingerprint) and the demo folder (None: the built-in demos), for ``eval`` and
+    ``plot``."""
+    from diffgcl.algorithms.expert import task_fingerprint
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    record = {
+        "name": env.name,
+        "options": options,
+        "demos": None if demos is None else str(demos),
+        "task": task_fingerprint(env),
+    }
+    (out / RUN_ENV).write_text(json.dumps(record, indent=1))
+
+
+def read_run_env(run_dir: Path) -> dict:
+    """What :func:`write_run_env` recorded (``{}`` for a run folder without it: the default
+    arm and the built-in demos)."""
+    path = Path(run_dir) / RUN_ENV
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def config_from_dict(d: dict):
@@ -432,12 +468,7 @@ def load_run(run_dir: Path, env):
     config = config_from_dict(json.loads((run_dir / "config.json").read_text()))
     with np.load(run_dir / CHECKPOINT) as f:
         seeds = [int(s) for s in f["seeds"]]
-    summary = (
-        json.loads((run_dir / "summary.json").read_text())
-        if (run_dir / "summary.json").is_file()
-        else {}
-    )
-    demo_dir = summary.get("demos")
+    demo_dir = read_run_env(run_dir).get("demos")
     demos = load_demo_batch(Path(demo_dir) if demo_dir else None, env)
     rgcl = make_train(config, env)
     S = len(seeds)

@@ -113,8 +113,9 @@ def cost_landscape(env, network, params, demo_X, path: Path, n: int = 81) -> Non
     """Learned vs expert per-step cost at rest over a (q1, q2) grid; demo_X: [N, T+1, dX]."""
     plt = _plt()
     demo_X = np.asarray(demo_X)
-    lo = np.minimum(demo_X[..., :2].min(axis=(0, 1)), 0.0) - 0.7
-    hi = np.maximum(demo_X[..., :2].max(axis=(0, 1)), 0.0) + 0.7
+    target = np.asarray(env.target)
+    lo = np.minimum(demo_X[..., :2].min(axis=(0, 1)), target) - 0.7
+    hi = np.maximum(demo_X[..., :2].max(axis=(0, 1)), target) + 0.7
     q1, q2 = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n))
     dtype = jnp.asarray(env.initial_states()).dtype
     X = jnp.asarray(
