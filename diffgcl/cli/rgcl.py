@@ -95,14 +95,19 @@ def _add_common(p: argparse.ArgumentParser, seeds: int = 4) -> None:
 
 
 def _print_table(rows: list[tuple[str, dict]]) -> None:
-    print(f"{'run':<24s} {'success':>9s} {'mean final dist':>16s} {'first success':>14s}")
+    print(
+        f"{'run':<24s} {'success':>9s} {'mean final dist':>16s} {'first success':>14s} "
+        f"{'noisy samples':>14s} {'entropy gap':>12s}"
+    )
     for name, s in rows:
         first = [f for f in s["first_success_iteration"] if f is not None]
         mean_first = f"{np.mean(first):.1f}" if first else "-"
         n = len(s["success"])
+        noisy = f"{s['sample_success_rate']:.2f}" if "sample_success_rate" in s else "-"
+        gap = f"{s['entropy_gap_nats_mean']:.0f} nats" if "entropy_gap_nats_mean" in s else "-"
         print(
             f"{name:<24s} {sum(s['success']):>4d}/{n:<4d} {s['mean_final_distance']:>16.3f} "
-            f"{mean_first:>14s}"
+            f"{mean_first:>14s} {noisy:>14s} {gap:>12s}"
         )
 
 
@@ -210,7 +215,7 @@ def eval_command(args) -> int:
     _setup(args)
     env, options = env_from_args(args, read_run_env(args.run))
     config, result, demos = load_run(args.run, env)
-    summary = run_summary(result, env)
+    summary = run_summary(result, env, demos)
     summary.pop("final_rollouts")
     summary.update(evaluate_cost(config, env, result.state.cost.params, result.seeds))
     summary["env"] = {"name": env.name, "options": options}
