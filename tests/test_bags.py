@@ -19,13 +19,10 @@ from rosbags.typesys import get_types_from_msg
 from diffgcl.cli import bags as bags_cli
 from diffgcl.data.bags import BagError, bag_format, inspect_bag, open_bag, typestore_for
 from diffgcl.data.demos import DemoSet
-from diffgcl.data.ingest import (
-    IngestConfig,
-    IngestWarning,
+from diffgcl.data.ingest import IngestConfig, IngestWarning, ingest_bag, ingest_bags
+from diffgcl.data.signals import (
     Signal,
     hold,
-    ingest_bag,
-    ingest_bags,
     interpolate,
     latlon_to_local,
     local_to_latlon,
@@ -169,6 +166,27 @@ def test_lidar_observes_the_pole(demos_ros1):
     assert np.median(np.abs(lidar.min(axis=1)[seen] - dist[seen])) < 3.0
 
 
+def test_radar_beam_reads_the_pole_with_the_default_filter(synth_sets, demos_ros1):
+    """The default map's clutter filter keeps the pole: its radar beam reads it within 5 m in
+    most steps; clutter returns (weaker) are gone."""
+    from diffgcl.data.scans import radar_pole_beam_hit_rate
+    from diffgcl.sim.sensors import SensorLayout
+
+    layout = SensorLayout()
+    hits = steps = 0
+    for i, truth in enumerate(synth_sets["ros1"].episodes):
+        h, n = radar_pole_beam_hit_rate(
+            demos_ros1.O[i],
+            demos_ros1.X[i],
+            demos_ros1.mask[i],
+            truth.profile.pole_xy,
+            truth.profile.pole_radius,
+            layout,
+        )
+        hits, steps = hits + h, steps + n
+    assert steps > 300 and hits / steps >= 0.8, (hits, steps)
+
+
 def test_ros1_and_ros2_give_the_same_dataset(synth_sets, demos_ros1):
     for fmt in ("ros2-sqlite3", "ros2-mcap"):
         assert bag_format(synth_sets[fmt].bags[0]) == fmt
@@ -206,8 +224,12 @@ def test_segmentation_by_rules_without_markers(synth_sets, tmp_path):
         (marked,) = ingest_bag(bag)
         (ruled,) = ingest_bag(dst)
     assert ruled.meta["segmentation"] == "rules"
-    # The rules take the whole underway stretch: it contains the marked episode.
-    assert ruled.t[0] <= marked.t[0] and ruled.t[-1] >= marked.t[-1]
+    # The run at the pole: from the approach (no later than the start marker) past the closest
+    # approach, ending after the boat is back on its course.
+    pole = np.asarray(marked.meta["obstacle_xy"])
+    closest = marked.t[np.argmin(np.linalg.norm(marked.X[:, :2] - pole, axis=1))]
+    assert ruled.t[0] <= marked.t[0] and ruled.t[-1] > closest + 5 * NS
+    assert ruled.meta["swerve_side"] == marked.meta["swerve_side"]
 
 
 def test_one_bag_per_set(tmp_path):
@@ -435,7 +457,7 @@ def test_cli_synth_inspect_convert(tmp_path, capsys):
 def test_pointcloud2_points_in_hull_frame():
     """A PointCloud2 (x, y, z float32, 16-byte points) becomes hull-frame points (mount applied)."""
     from diffgcl.data.bags import TopicMessages
-    from diffgcl.data.ingest import scan_points
+    from diffgcl.data.scans import decode_scans
     from diffgcl.data.topics import RangeSensorSpec
 
     store = typestore_for("ros2-mcap")
@@ -452,7 +474,7 @@ def test_pointcloud2_points_in_hull_frame():
         "/cloud", "sensor_msgs/msg/PointCloud2", np.array([NS]), np.array([NS]), (cloud,)
     )
     spec = RangeSensorSpec("/cloud", mount=(2.0, 0.0, np.pi / 2))
-    (xy,) = scan_points("test.bag", data, spec)
+    (xy,) = decode_scans("test.bag", data, spec, "lidar").points
     # Sensor yawed 90° to port, 2 m ahead: (10, 0) -> (2, 10); (0, -5) -> (7, 0); NaN dropped.
     np.testing.assert_allclose(xy, [[2.0, 10.0], [7.0, 0.0]], atol=1e-6)
 

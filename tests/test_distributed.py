@@ -180,7 +180,8 @@ def test_sweep_pads_its_last_chunk_and_scores_every_run(demos_file):
     demos = pickle.loads(Path(demos_file).read_bytes())
     grid = parse_grid(["cost_lr=1e-2,3e-3"])
     result = run_sweep(config, env, demos, [4, 5], grid, chunk=3, keep_states=True)
-    assert result.chunk == 3 and result.processes == 1 and len(result.points) == 2
+    n = len(jax.devices())  # another test in this worker may have split the CPU into two
+    assert result.chunk == -(-3 // n) * n and result.processes == 1 and len(result.points) == 2
     assert result.outcome.success.shape == (4,) and result.state.iteration.shape == (4,)
     rgcl = make_train(config, env)
     single = jax.jit(rgcl.train)

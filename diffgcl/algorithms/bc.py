@@ -92,3 +92,15 @@ def demo_arrays(demos, env=None):
     X = jnp.asarray(demos.X, U.dtype)
     O = jax.jit(jax.vmap(jax.vmap(env.obs)))(X)
     return O, U, mask
+
+
+def clone_demos(demos, env, config: BCConfig, seeds) -> tuple[GaussianPolicy, object]:
+    """Host-side: behaviour cloning of a :class:`~diffgcl.data.demos.DemoSet` for every seed
+    (one vmapped fit); observations recomputed by ``env.obs`` from the demos' states so that the
+    policy sees what the simulator's sensors give. Returns ``(policy, params [S, ...])``."""
+    O, U, mask = demo_arrays(demos, env)
+    dtype = jnp.asarray(env.initial_states()).dtype
+    policy, fit = make_bc(config, env.dO, env.dU, dtype)
+    keys = jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
+    state, _ = jax.jit(jax.vmap(lambda k: fit(k, O.astype(dtype), U.astype(dtype), mask)))(keys)
+    return policy, state.params

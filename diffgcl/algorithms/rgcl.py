@@ -97,9 +97,7 @@ from diffgcl.costs.network import (
     CostNetwork,
     CostNetworkConfig,
     CostParams,
-    init_normaliser,
     untempered,
-    update_normaliser,
 )
 from diffgcl.costs.temperature import calibrated_log_temperature
 from diffgcl.eval.controllers import demo_log_likelihood
@@ -292,9 +290,15 @@ class RGCL(NamedTuple):
 
 
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
-    """The cost network of ``config`` for ``env`` (parameters in the run's float dtype)."""
+    """The cost network of ``config`` for ``env`` (parameters in the run's float dtype; with
+    ``network.features == "env"`` it reads ``env.cost_features``)."""
     dtype = jnp.asarray(env.initial_states()).dtype
-    return CostNetwork(config.network, env.dX, env.dU, param_dtype=dtype)
+    features = None
+    if config.network.features == "env":
+        if not hasattr(env, "cost_features"):
+            raise ValueError(f"env {env.name!r} has no cost_features for network.features='env'")
+        features = env.cost_features
+    return CostNetwork(config.network, env.dX, env.dU, param_dtype=dtype, feature_map=features)
 
 
 def _make_optimiser(config: GCLConfig, learning_rate: Array) -> optax.GradientTransformation:
@@ -427,8 +431,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         key_gps, key_net, key_samples, key_pretrain = jax.random.split(key, 4)
         gps = phases.init(key_gps, GPSHyperparams(kl_step=hp.kl_step, init_var=hp.init_var))
         params = network.init(key_net)
-        norm = update_normaliser(init_normaliser(dX, dtype), demos.X)
-        params = params.replace(norm=norm)
+        params = params.replace(norm=network.fit_normaliser(demos.X))
         optimiser = _make_optimiser(gcl_cfg, hp.cost_lr)
         cost = CostState(
             params=params,

@@ -287,6 +287,32 @@ def train_seeds(
     )
 
 
+def write_policies(out: Path, result: RunResult, env) -> dict:
+    """The global policies of a run: each seed's in ``out/policies/seed_<s>/``
+    (:func:`diffgcl.policies.io.save_policy`), a plot of seed 0's noise-free rollouts from the
+    training conditions, and their success per seed (returned for the summary)."""
+    from diffgcl.algorithms.mdgps import make_policy
+    from diffgcl.eval.policy import policy_rollouts, policy_success
+    from diffgcl.policies.io import save_policy
+    from diffgcl.viz import plots
+
+    out = Path(out)
+    policy = make_policy(result.config.policy, env)
+    params = jax.tree.map(jnp.asarray, result.state.policy.params)
+    x0 = jnp.asarray(env.initial_states())
+    rollouts = jax.vmap(lambda p: policy_success(env, policy_rollouts(env, policy, p, x0)))
+    success = np.asarray(jax.jit(rollouts)(params))  # [S, C]
+    for i, seed in enumerate(result.seeds):
+        one = jax.tree.map(lambda a, i=i: a[i], params)
+        save_policy(out / "policies" / f"seed_{seed}", policy, one, method="rgcl+mdgps", seed=seed)
+    p0 = jax.tree.map(lambda a: a[0], params)
+    plots.policy_paths(env, policy, p0, {"training": x0}, out / "policy_rollouts.png")
+    return {
+        "policy_success": success.all(-1).tolist(),
+        "policy_success_rate": float(success.all(-1).mean()),
+    }
+
+
 def _concat(parts):
     if not parts:
         return None
@@ -396,6 +422,9 @@ def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=
                         [result.seeds[s], i + 1, g + 1, *row, float(m.gcl.loss[s, i])]
                         + [bool(m.rolled_back[s, i])]
                     )
+    if result.state.policy is not None:
+        summary.update(write_policies(out, result, env))
+        (out / "summary.json").write_text(json.dumps(summary, indent=1))
     network = make_network(result.config, env)
     params0 = jax.tree.map(lambda a: jnp.asarray(a[0]), result.state.cost.params)
     from diffgcl.control.lqr import controller_entropy

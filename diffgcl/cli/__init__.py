@@ -20,6 +20,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "diffgcl.cli.gps",
     "diffgcl.cli.rgcl",
     "diffgcl.cli.bags",
+    "diffgcl.cli.policy",
 )
 
 

@@ -1,15 +1,21 @@
-"""``diffgcl bags inspect|convert|synth``: the ROS-bag commands of the CLI.
+"""``diffgcl bags inspect|template|convert|synth``: the ROS-bag commands of the CLI.
 
 :func:`register` adds the ``bags`` command to an ``argparse`` sub-parser collection; the module
-also runs on its own (``python -m diffgcl.cli.bags bags inspect PATH``).
+also runs on its own (``python -m diffgcl.cli.bags bags inspect PATH``). The user's guide is
+``docs/bags.md``.
 
-* ``bags inspect PATH...`` — topics, types, message counts, rates, largest gaps, duration.
-* ``bags convert PATH... --out DIR [--topics MAP.yaml]`` — ingest into a demo dataset
-  (:mod:`diffgcl.data.demos` format), with a progress bar; warnings go to stderr.
-* ``bags synth --out DIR`` — write the Odin-like synthetic data set (:mod:`diffgcl.data.synth`).
+* ``bags inspect PATH... [--topics MAP.yaml]`` — topics, types, counts, rates, on-change or
+  periodic, gaps, header-stamp order and latency, then the problems found.
+* ``bags template BAG [--out MAP.yaml]`` — a starting topic map from what inspect found.
+* ``bags convert PATH... --out DIR [--topics MAP.yaml] [--overwrite]`` — ingest into a demo
+  dataset (:mod:`diffgcl.data.demos` format), with a progress bar; warnings go to stderr.
+* ``bags synth --out DIR [--layout odin|other]`` — write a synthetic data set
+  (:mod:`diffgcl.data.synth`).
 
-Bad input prints one line ``error: FILE: topic T, t=...: reason`` to stderr and exits with
-status 2; nothing is written then.
+Output folders follow :func:`diffgcl.io.write_folder`: a non-empty folder that is not this
+command's output is refused unless ``--overwrite`` (which replaces only the entries of the same
+name); ``--out`` naming a file is an error. Bad input prints one line
+``error: FILE: topic T, t=...: reason`` to stderr and exits with status 2; nothing is written.
 """
 
 from __future__ import annotations
@@ -27,13 +33,27 @@ def register(subparsers) -> argparse.ArgumentParser:
     bags = subparsers.add_parser("bags", help="ROS bags: inspect, convert to demos, synthesise")
     sub = bags.add_subparsers(dest="bags_command", required=True)
 
-    p = sub.add_parser("inspect", help="topics, types, rates, gaps and duration of bags")
+    p = sub.add_parser("inspect", help="topics, types, rates, gaps, stamp order of bags")
     p.add_argument("paths", nargs="+", help=".bag files (ROS1) or ROS2 bag folders")
+    p.add_argument(
+        "--topics", default=None, help="topic map YAML: its commands and markers are on change"
+    )
     p.set_defaults(func=_guarded(cmd_inspect))
+
+    p = sub.add_parser("template", help="write a starting topic map for a bag")
+    p.add_argument("path", help="a .bag file (ROS1) or a ROS2 bag folder")
+    p.add_argument("--out", default=None, help="YAML file to write (default: print it)")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
+    p.set_defaults(func=_guarded(cmd_template))
 
     p = sub.add_parser("convert", help="ingest bags into a demonstration dataset")
     p.add_argument("paths", nargs="+", help=".bag files (ROS1) or ROS2 bag folders")
-    p.add_argument("--out", required=True, help="output dataset folder (replaced atomically)")
+    p.add_argument("--out", required=True, help="output dataset folder (see --overwrite)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into a non-empty folder that is not a dataset (same-named entries replaced)",
+    )
     p.add_argument("--topics", default=None, help="topic map YAML (default: the Odin-like map)")
     p.add_argument("--dt", type=float, default=None, help="grid step in s (default: the hull's)")
     p.add_argument("--horizon", type=int, default=None, help="pad/crop episodes to T steps")
@@ -41,19 +61,39 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--quiet", action="store_true", help="no progress bar, no warnings")
     p.set_defaults(func=_guarded(cmd_convert))
 
-    p = sub.add_parser("synth", help="write Odin-like synthetic bags (simulated operator)")
-    p.add_argument("--out", required=True, help="output folder (replaced atomically)")
+    p = sub.add_parser("synth", help="write synthetic bags (simulated operator)")
+    p.add_argument("--out", required=True, help="output folder (see --overwrite)")
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="write into a non-empty folder that is not a synthetic set",
+    )
+    p.add_argument(
+        "--layout",
+        default="odin",
+        choices=("odin", "other"),
+        help="odin: the Odin-like bags; other: another boat's layout (GNSS latency, NED "
+        "odometry, radar point cloud with sea clutter, percent/degree commands, one bag per "
+        "set with repositioning legs, no markers, no obstacle topic)",
+    )
+    p.add_argument(
+        "--markers",
+        default=None,
+        choices=("keyvalue", "id", "none"),
+        help="episode markers (default: keyvalue for odin, none for other)",
+    )
     p.add_argument(
         "--format", default="ros1", choices=("ros1", "ros2-sqlite3", "ros2-mcap"), dest="fmt"
     )
-    p.add_argument("--bag-per", default="episode", choices=("episode", "set"))
+    p.add_argument("--bag-per", default=None, choices=("episode", "set"))
     p.add_argument(
         "--episodes-per-set",
         type=int,
         nargs=2,
-        default=(19, 47),
+        default=None,
         metavar=("SET1", "SET2"),
-        help="episodes in set 1 (no LiDAR) and set 2 (LiDAR); the seed had 19 and 47",
+        help="episodes in set 1 (no LiDAR) and set 2 (LiDAR); default 19 47 (the seed's) for "
+        "odin, 3 3 for other",
     )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument(
@@ -80,9 +120,29 @@ def _bag_paths(paths: list[str]) -> list[Path]:
 
 def cmd_inspect(args) -> int:
     from diffgcl.data.bags import inspect_bag
+    from diffgcl.data.topics import load_topic_map
 
+    on_change: set[str] = set()
+    if args.topics is not None:
+        tm = load_topic_map(args.topics)
+        on_change = {spec.topic for spec in (tm.commands, tm.markers) if spec is not None}
     for path in _bag_paths(args.paths):
-        print(inspect_bag(path).format_text())
+        print(inspect_bag(path, on_change).format_text())
+    return 0
+
+
+def cmd_template(args) -> int:
+    from diffgcl.data.template import template_from_bag
+    from diffgcl.io import check_output_file, write_file_atomically
+
+    if args.out is not None:
+        check_output_file(args.out, args.overwrite)
+    text = template_from_bag(args.path)
+    if args.out is None:
+        print(text)
+    else:
+        write_file_atomically(args.out, text, args.overwrite)
+        print(f"{args.out}: topic map drafted from {args.path}; check its TODOs")
     return 0
 
 
@@ -103,7 +163,7 @@ def cmd_convert(args) -> int:
     progress = None if args.quiet else (lambda xs: tqdm(xs, desc="bags", unit="bag"))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", IngestWarning)
-        demos = convert(paths, args.out, topic_map, config, progress)
+        demos = convert(paths, args.out, topic_map, config, progress, args.overwrite)
     if not args.quiet:
         for w in caught:
             if issubclass(w.category, IngestWarning):
@@ -118,20 +178,20 @@ def cmd_convert(args) -> int:
 def cmd_synth(args) -> int:
     from tqdm import tqdm
 
-    from diffgcl.data.synth import SynthConfig, synthesize
+    from diffgcl.data.synth import SynthConfig, other_boat_config, synthesize
 
-    kwargs = {}
+    kwargs: dict = {"fmt": args.fmt, "seed": args.seed}
     if args.short:
-        kwargs = {"approach_m": (60.0, 80.0), "end_margin_m": (30.0, 40.0)}
-    config = SynthConfig(
-        episodes=tuple(args.episodes_per_set),
-        fmt=args.fmt,
-        bag_per=args.bag_per,
-        seed=args.seed,
-        **kwargs,
-    )
-    progress = None if args.quiet else (lambda xs: tqdm(xs, desc="episodes", unit="ep"))
-    result = synthesize(args.out, config, progress)
+        kwargs.update(approach_m=(60.0, 80.0), end_margin_m=(30.0, 40.0))
+    if args.episodes_per_set is not None:
+        kwargs["episodes"] = tuple(args.episodes_per_set)
+    if args.bag_per is not None:
+        kwargs["bag_per"] = args.bag_per
+    if args.markers is not None:
+        kwargs["markers"] = args.markers
+    config = other_boat_config(**kwargs) if args.layout == "other" else SynthConfig(**kwargs)
+    progress = None if args.quiet else (lambda xs: tqdm(xs, desc="pieces", unit="piece"))
+    result = synthesize(args.out, config, progress, args.overwrite)
     print(f"{result.out}: {len(result.episodes)} episodes in {len(result.bags)} bags ({args.fmt})")
     return 0
 
@@ -143,10 +203,11 @@ def _guarded(command):
         from diffgcl.data.bags import BagError
         from diffgcl.data.demos import DemoError
         from diffgcl.data.topics import TopicMapError
+        from diffgcl.io import OutputError
 
         try:
             return command(args)
-        except (BagError, TopicMapError, DemoError) as err:
+        except (BagError, TopicMapError, DemoError, OutputError) as err:
             print(f"error: {err}", file=sys.stderr)
             return EXIT_BAD_INPUT
 

@@ -3,6 +3,8 @@
     diffgcl train [--preset default] [--schedule v2] [--seeds 4] [--demos DIR] [--out DIR]
                   [--env arm] [--env-set x0=...,target=...] [--set gcl.n_steps=50 ...]
                   [--resume] [--x64]
+    diffgcl train --mjcf MODEL.xml --demos DEMOS.npz [--dt 0.02] [--obs state,site:tip]
+                  [--policy mdgps]        your own model (diffgcl.api, docs/your_robot.md)
     diffgcl sweep --param cost_lr=1e-4,1e-3,1e-2 [--param kl_step=0.1,0.2] [--seeds 4] ...
     diffgcl sweep|train ... --local-processes 2 [--devices 1]      N processes on this host
     diffgcl sweep|train ... --coordinator HOST:PORT --num-processes N --process-id I
@@ -53,10 +55,23 @@ def _setup(args):
     enable_compilation_cache()
 
 
+def _policy_settings(args):
+    """The global policy's settings of ``--policy mdgps [--on-policy]``, else None."""
+    if getattr(args, "policy", "none") != "mdgps":
+        return None
+    from diffgcl.algorithms.mdgps import PolicySettings
+
+    return PolicySettings(sample_on_policy=bool(getattr(args, "on_policy", False)))
+
+
 def config_from_args(args):
     from diffgcl.algorithms.presets import get_preset, with_overrides
 
     config = get_preset(args.preset, getattr(args, "schedule", None))
+    if (settings := _policy_settings(args)) is not None:
+        import dataclasses
+
+        config = dataclasses.replace(config, policy=settings)
     overrides = list(getattr(args, "set", None) or [])
     if getattr(args, "iterations", None):
         overrides.append(f"iterations={args.iterations}")
@@ -89,7 +104,9 @@ def _add_common(p: argparse.ArgumentParser, seeds: int = 4) -> None:
         metavar="FIELD=VALUE",
         help="config override, e.g. gcl.n_steps=50 or gps.maxent=True (repeatable)",
     )
-    p.add_argument("--demos", type=Path, default=None, help="demo folder (default: built-in)")
+    p.add_argument(
+        "--demos", type=Path, default=None, help="demo folder (default: built-in); --mjcf: npz"
+    )
     p.add_argument("--x64", action="store_true", help="float64 (default float32)")
     add_env_options(p, RGCL_ENVS)
 
@@ -114,6 +131,44 @@ def _print_table(rows: list[tuple[str, dict]]) -> None:
 # ---- train --------------------------------------------------------------------------------------
 
 
+def train_mjcf_command(args) -> int:
+    """``train --mjcf PATH --demos PATH``: your own model through :mod:`diffgcl.api`."""
+    from diffgcl import api
+
+    if args.demos is None:
+        raise SystemExit("train --mjcf: give the demonstrations with --demos PATH")
+    obs = tuple(args.obs.split(",")) if args.obs else "state"
+    env = api.load_model(args.mjcf, dt=args.dt, obs=obs)
+    demos = api.load_demos(args.demos, env)
+    seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    out = args.out or Path("runs") / f"{env.name}-{time.strftime('%Y%m%d-%H%M%S')}"
+    print(f"rGCL ({args.preset}) on {env.mjcf_path}: {demos.num_episodes} demos, seeds {seeds}")
+    run = api.learn(
+        env,
+        demos,
+        preset=args.preset,
+        schedule=args.schedule,
+        seeds=seeds,
+        iterations=args.iterations,
+        overrides=args.set,
+        policy=_policy_settings(args) or False,
+        progress=not args.no_progress,
+    )
+    report = run.report()
+    run.save(out)
+    reopt = report["reoptimisation"]
+    print(
+        f"conditions {report['conditions']}, horizon {report['horizon']}; distance to the demos "
+        f"{report['mean_demo_distance']:.3f} (re-optimised {reopt['mean_demo_distance']:.3f}, "
+        f"demos among themselves {np.mean(report['demo_spread']):.3f}) demo standard deviations"
+    )
+    if "policy" in report:
+        print(f"global policy: distance to the demos {report['policy']['mean_demo_distance']:.3f}")
+    print(f"compile {report['compile_seconds']:.1f} s, run {report['run_seconds']:.1f} s; "
+          f"report and plots in {out}")  # fmt: skip
+    return 0
+
+
 def train_command(args) -> int:
     """Train one configuration over seeds through the host runner; write the run folder."""
     from diffgcl.algorithms.runner import train_seeds, write_run_folder
@@ -122,6 +177,8 @@ def train_command(args) -> int:
     if (status := _launch_or_join(args)) is not None:
         return status
     _setup(args)
+    if args.mjcf is not None:
+        return train_mjcf_command(args)
     env, env_options = env_from_args(args)
     config = config_from_args(args)
     demos = load_demo_batch(args.demos, env)
@@ -277,8 +334,15 @@ def register(subparsers) -> None:
     from diffgcl.distributed import add_process_options
     from diffgcl.runtime import add_devices_option
 
-    train = subparsers.add_parser("train", help="rGCL on the arm over seeds (run folder)")
+    train = subparsers.add_parser(
+        "train", help="rGCL over seeds (run folder): the arm, or your model with --mjcf"
+    )
     _add_common(train)
+    train.add_argument("--mjcf", type=Path, default=None,
+                       help="your MJCF model; --demos is then an npz of qpos/qvel/ctrl "
+                       "(docs/your_robot.md)")  # fmt: skip
+    train.add_argument("--dt", type=float, default=None, help="--mjcf: control period (s)")
+    train.add_argument("--obs", default=None, help="--mjcf: e.g. state,site:fingertip")
     train.add_argument("--out", type=Path, default=None, help="run folder")
     train.add_argument("--chunk", type=int, default=5, help="iterations per jitted call")
     train.add_argument("--checkpoint-every", type=int, default=5)
@@ -286,6 +350,16 @@ def register(subparsers) -> None:
     train.add_argument("--no-progress", action="store_true")
     add_devices_option(train)
     add_process_options(train)
+    train.add_argument(
+        "--policy",
+        choices=("none", "mdgps"),
+        default="none",
+        help="also train a global policy on the observations (MDGPS; override its settings "
+        "with --set policy.s_step.n_steps=... etc.)",
+    )
+    train.add_argument(
+        "--on-policy", action="store_true", help="with --policy: sample from the global policy"
+    )
     train.set_defaults(func=train_command)
 
     sweep = subparsers.add_parser("sweep", help="rGCL over a grid of traced hyperparameters")

@@ -167,15 +167,18 @@ def mono_penalty(s: Array, slack: float) -> Array:
 
 def goal_penalty(network: CostNetwork, params: CostParams, X: Array) -> Array:
     """``‖∂s/∂z‖²`` at the final state ``X[-1]`` of one trajectory ``X: [T+1, dX]``, with ``s`` the
-    state cost and ``z`` the normalised state (chain rule through the normaliser's scale)."""
+    state cost and ``z`` the normalised state (or the normalised features with a feature map):
+    the chain rule through the normaliser's scale, ``∂s/∂z = ∂s/∂φ · std``."""
     T = X.shape[0] - 1
-
-    def s(x):
-        return network.state_cost(params, x, T)
-
     norm = jax.lax.stop_gradient(params.norm)
     std = jnp.maximum(jnp.sqrt(norm.var), network.config.std_floor)
-    return jnp.sum((jax.grad(s)(X[-1]) * std) ** 2)
+    if network.feature_map is None:
+        grad = jax.grad(lambda x: network.state_cost(params, x, T))(X[-1])
+        return jnp.sum((grad * std) ** 2)
+    phi = network.feature_map(X[-1])
+    bare = CostNetwork(network.config, phi.shape[0], network.dU, network.param_dtype)
+    grad = jax.grad(lambda f: bare.state_cost(params, f, T))(phi)
+    return jnp.sum((grad * std) ** 2)
 
 
 def _mixture_log_weights(

@@ -25,13 +25,21 @@ trained parameter: the GCL objective fits the cost at ``ρ = 0`` (:mod:`diffgcl.
 ``ρ`` is set from the demonstrations' action precision (:mod:`diffgcl.costs.temperature`), or left
 at 0, where the likelihood alone sets the cost's scale.
 
+Optional feature map (``CostNetwork.feature_map``): the network reads ``φ(x)`` instead of the raw
+state — task features a domain expert would use (for the USV: range and bearing to the pole,
+closing speed, cross-track and heading error; :meth:`diffgcl.envs.usv.UsvEnv.cost_features`). The
+normaliser, the identity initialisation and the Gram form then work on ``φ``; the cost stays a
+differentiable function of ``x`` (Gauss–Newton and the LQR differentiate through ``φ``). A
+quadratic in the raw state cannot say "keep away from the pole"; a quadratic in such features
+can.
+
 The network is flax linen; everything outside it (``CostParams``, :class:`CostNetwork`) is plain,
 so the cost is a pure function of an explicit parameter pytree that jit/vmap/scan carry around.
 """
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import flax.linen as nn
@@ -78,7 +86,8 @@ class CostNetworkConfig:
     learn_action_weight: train ``log w_u`` with the rest; time_input: append ``t / horizon`` to
     the input; std_floor: lower bound of the normaliser's standard deviation (in the state's own
     units); a_scale: standard deviation of the initial
-    entries of ``A`` times ``sqrt(F)``.
+    entries of ``A`` times ``sqrt(F)``; features: ``"state"`` — the network reads the raw
+    state — or ``"env"`` — it reads the env's ``cost_features(x)`` (task features).
     """
 
     hidden: tuple[int, ...] = (32, 32)
@@ -91,6 +100,14 @@ class CostNetworkConfig:
     horizon: int = 1
     std_floor: float = 1e-2
     a_scale: float = 1.0
+    features: str = "state"
+
+    def __post_init__(self):
+        if self.features not in ("state", "env"):
+            raise ValueError(
+                f"CostNetworkConfig: features {self.features!r}; 'state' (the raw state) or "
+                "'env' (the env's cost_features)"
+            )
 
 
 def _identity_kernel(rows: int, cols: int, dX: int, mode: str, base_init):
@@ -203,36 +220,59 @@ def update_normaliser(
 class CostNetwork:
     """The cost ``c_φ`` for states of size ``dX`` and actions of size ``dU``; all methods are pure
     functions of an explicit :class:`CostParams` and written for one ``(x, u, t)``.
-    ``param_dtype``: dtype of new parameters (float64 in the tests)."""
+    ``param_dtype``: dtype of new parameters (float64 in the tests); ``feature_map``: an optional
+    feature map ``φ(x: [dX]) -> [dF]`` the network reads instead of ``x`` (module docstring)."""
 
     config: CostNetworkConfig
     dX: int
     dU: int
     param_dtype: object = jnp.float32
+    feature_map: Callable[[Array], Array] | None = None
+
+    @property
+    def state_input_dim(self) -> int:
+        """Size of what the normaliser sees: ``dF`` with a feature map, else ``dX``."""
+        if self.feature_map is None:
+            return self.dX
+        shape = jax.eval_shape(self.feature_map, jax.ShapeDtypeStruct((self.dX,), self.param_dtype))
+        return int(shape.shape[0])
+
+    def state_input(self, x: Array) -> Array:
+        """``φ(x)`` with a feature map, else ``x``: [state_input_dim]."""
+        return x if self.feature_map is None else self.feature_map(x)
+
+    def fit_normaliser(self, X: Array, mask: Array | None = None) -> InputNormaliser:
+        """The normaliser's statistics from states ``X: [..., dX]`` (of their features with a
+        feature map)."""
+        flat = X.reshape(-1, X.shape[-1])
+        inputs = flat if self.feature_map is None else jax.vmap(self.feature_map)(flat)
+        norm = init_normaliser(self.state_input_dim, inputs.dtype)
+        return update_normaliser(norm, inputs, None if mask is None else mask.reshape(-1))
 
     @property
     def _features(self) -> FeatureNetwork:
         return FeatureNetwork(
             hidden=self.config.hidden,
             n_features=self.config.n_features,
-            identity_dim=self.dX if self.config.identity_init else 0,
-            linear_dim=self.dX if self.config.linear_skip else 0,
+            identity_dim=self.state_input_dim if self.config.identity_init else 0,
+            linear_dim=self.state_input_dim if self.config.linear_skip else 0,
             param_dtype=self.param_dtype,
         )
 
     def _input_dim(self) -> int:
-        return self.dX + (1 if self.config.time_input else 0)
+        return self.state_input_dim + (1 if self.config.time_input else 0)
 
     def init(self, key: PRNGKey) -> CostParams:
         """Random parameters (identity path if configured), unit normaliser."""
         cfg = self.config
-        if cfg.linear_skip and cfg.n_features <= self.dX:
-            raise ValueError(f"linear_skip needs n_features > dX = {self.dX}")
-        too_narrow = min(cfg.hidden, default=2 * self.dX) < 2 * self.dX or cfg.n_features < self.dX
+        d = self.state_input_dim
+        if cfg.linear_skip and cfg.n_features <= d:
+            raise ValueError(f"linear_skip needs n_features > the state input's size {d}")
+        too_narrow = min(cfg.hidden, default=2 * d) < 2 * d or cfg.n_features < d
         if cfg.identity_init and not cfg.linear_skip and too_narrow:
             raise ValueError(
-                f"identity_init needs hidden widths >= 2*dX = {2 * self.dX} and n_features >= "
-                f"dX = {self.dX}; got hidden={cfg.hidden}, n_features={cfg.n_features}"
+                f"identity_init needs hidden widths >= 2 × {d} and n_features >= {d} (the state "
+                f"input's size); got hidden={cfg.hidden}, n_features={cfg.n_features}"
             )
         key_mlp, key_a = jax.random.split(key)
         F = cfg.n_features
@@ -245,15 +285,16 @@ class CostNetwork:
         }
         return CostParams(
             net=net,
-            norm=init_normaliser(self.dX, self.param_dtype),
+            norm=init_normaliser(self.state_input_dim, self.param_dtype),
             log_temperature=jnp.zeros((), self.param_dtype),
         )
 
     def normalise(self, params: CostParams, x: Array) -> Array:
-        """``(x − mean) / max(std, floor)`` with the statistics held constant: [dX]."""
+        """``(φ(x) − mean) / max(std, floor)`` (``φ(x) = x`` without a feature map) with the
+        statistics held constant: [state_input_dim]."""
         norm = jax.lax.stop_gradient(params.norm)
         std = jnp.maximum(jnp.sqrt(norm.var), self.config.std_floor)
-        return (x - norm.mean) / std
+        return (self.state_input(x) - norm.mean) / std
 
     def network_input(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
         """The feature network's input: the normalised state, with ``t / horizon`` appended when

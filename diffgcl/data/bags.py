@@ -46,6 +46,13 @@ CUSTOM_MSGS: dict[str, str] = {
     "odin_msgs/msg/JetState": (
         "std_msgs/Header header\nfloat32 thrust  # [N]\nfloat32 nozzle  # [rad]\n"
     ),
+    # The "other boat" layout's jet command (diffgcl.data.synth, layout="other"): percent and
+    # degrees, positive steering to starboard, published on change.
+    "jet_msgs/msg/JetCmd": (
+        "std_msgs/Header header\n"
+        "float64 throttle  # [%] of full thrust, negative = reverse\n"
+        "float64 steering  # [deg], positive turns the bow to starboard\n"
+    ),
     # One radar sweep reduced to sparse detections in the sensor frame.
     "odin_msgs/msg/RadarSector": (
         "std_msgs/Header header\n"
@@ -55,6 +62,10 @@ CUSTOM_MSGS: dict[str, str] = {
         "float32[] intensities   # [0, 1]\n"
     ),
 }
+
+
+class IngestWarning(UserWarning):
+    """A recoverable problem in a bag (dropout, missing optional sensor, masked span)."""
 
 
 class BagError(Exception):
@@ -121,9 +132,27 @@ class TopicMessages:
     msgs: tuple[Any, ...]
 
 
+# A topic is periodic when the spread of its intervals (interquartile range) is below this fraction
+# of the median interval; otherwise it is published on change (commands, markers) and has no
+# "gaps". A periodic topic's gap is an interval longer than GAP_FACTOR median intervals.
+PERIODIC_IQR = 0.5
+GAP_FACTOR = 3.0
+# Header stamps more than this behind the latest one seen go "backwards" (as in ingestion).
+BACKWARDS_S = 0.5
+
+
 @dataclass(frozen=True)
 class TopicSummary:
-    """Per-topic statistics from :func:`inspect_bag` (times in s)."""
+    """Per-topic statistics from :func:`inspect_bag` (times in s, bag receive time unless said).
+
+    pattern: ``periodic``, ``on change`` (irregular intervals: commands, markers) or ``sparse``
+    (fewer than 3 messages); rate_hz: messages per second over the topic's span; period_s: the
+    median interval; gaps: intervals longer than GAP_FACTOR periods (periodic topics only),
+    largest_gap_at_s: where the longest interval starts. header: the messages carry a header
+    stamp; backwards: header stamps more than BACKWARDS_S behind the latest one, first at
+    backwards_at_s (bag time), by up to backwards_by_s; latency_s: median of receive time minus
+    header stamp.
+    """
 
     topic: str
     msgtype: str
@@ -132,7 +161,39 @@ class TopicSummary:
     last_s: float
     rate_hz: float
     max_gap_s: float
-    gaps: int = 0  # intervals longer than 3x the median interval (dropouts)
+    gaps: int = 0
+    pattern: str = "sparse"
+    period_s: float = float("nan")
+    largest_gap_at_s: float = float("nan")
+    header: bool = False
+    backwards: int = 0
+    backwards_at_s: float = float("nan")
+    backwards_by_s: float = 0.0
+    latency_s: float = float("nan")
+
+    def problems(self) -> list[str]:
+        """One line per problem found on this topic."""
+        out = []
+        if self.backwards:
+            out.append(
+                f"topic {self.topic}: header stamps go backwards {self.backwards} times (first "
+                f"at t={self.backwards_at_s:.3f}s, by up to {self.backwards_by_s:.2f} s); in the "
+                "topic map use time_source: receive, or bad_stamps: mask"
+            )
+        if self.gaps:
+            hint = (
+                ""
+                if self.msgtype.split("/")[0] in ("sensor_msgs", "nav_msgs", "geometry_msgs")
+                else " (normal if it is published on change: give the topic map to inspect)"
+            )
+            out.append(
+                f"topic {self.topic}: {self.gaps} gaps longer than {GAP_FACTOR:g}x the "
+                f"{self.period_s:.3f} s period (longest {self.max_gap_s:.2f} s from "
+                f"t={self.largest_gap_at_s:.3f}s){hint}"
+            )
+        if self.count == 0:
+            out.append(f"topic {self.topic}: no messages")
+        return out
 
 
 @dataclass(frozen=True)
@@ -149,17 +210,34 @@ class BagSummary:
     def duration_s(self) -> float:
         return self.end_s - self.start_s
 
+    def problems(self) -> list[str]:
+        """One line per problem found (stamps going backwards, gaps in periodic topics)."""
+        return [line for t in self.topics for line in t.problems()]
+
     def format_text(self) -> str:
-        """Human-readable table."""
+        """Human-readable table, then the problems found (or that there are none)."""
         lines = [
             f"{self.path} [{self.format}]  {self.duration_s:.1f} s  "
-            f"({self.start_s:.3f} .. {self.end_s:.3f})"
+            f"({self.start_s:.3f} .. {self.end_s:.3f})",
+            f"  {'topic':<28} {'type':<32} {'msgs':>7} {'rate':>9}  {'pattern':<9} "
+            f"{'max gap':>8} {'gaps':>5} {'latency':>8}  stamps",
         ]
         for t in self.topics:
+            if not t.header:
+                stamps = "no header"
+            elif t.backwards:
+                stamps = f"{t.backwards} backwards"
+            else:
+                stamps = "in order"
+            latency = f"{t.latency_s * 1e3:6.0f}ms" if t.header else f"{'-':>8}"
+            gaps = f"{t.gaps:5d}" if t.pattern == "periodic" else f"{'-':>5}"
             lines.append(
-                f"  {t.topic:<28} {t.msgtype:<32} {t.count:>7} msgs {t.rate_hz:>7.2f} Hz  "
-                f"max gap {t.max_gap_s:6.2f} s  gaps {t.gaps}"
+                f"  {t.topic:<28} {t.msgtype:<32} {t.count:>7} {t.rate_hz:>6.2f} Hz  "
+                f"{t.pattern:<9} {t.max_gap_s:>6.2f} s {gaps} {latency}  {stamps}"
             )
+        problems = self.problems()
+        lines.append("  problems:" if problems else "  no problems found")
+        lines.extend(f"    {line}" for line in problems)
         return "\n".join(lines)
 
 
@@ -236,44 +314,104 @@ def topic_types(path: str | os.PathLike) -> dict[str, str]:
         return {c.topic: c.msgtype for c in reader.connections}
 
 
-def inspect_bag(path: str | os.PathLike) -> BagSummary:
-    """Topics, types, message counts, rates and largest gaps of one bag (reads every record)."""
+def _raw_stamp(raw: bytes, fmt: str) -> int:
+    """Header stamp (ns) of a serialised message whose first field is a std_msgs/Header."""
+    if fmt == "ros1":  # uint32 seq, uint32 sec, uint32 nsec
+        sec, nsec = np.frombuffer(raw, "<u4", count=2, offset=4)
+    else:  # CDR: 4-byte encapsulation header (byte 1: 1 = little endian), int32 sec, uint32 ns
+        order = "<" if raw[1] == 1 else ">"
+        sec = np.frombuffer(raw, order + "i4", count=1, offset=4)[0]
+        nsec = np.frombuffer(raw, order + "u4", count=1, offset=8)[0]
+    return int(sec) * 1_000_000_000 + int(nsec)
+
+
+def _summarise(
+    topic, msgtype, bag_ns: np.ndarray, stamp_ns: np.ndarray | None, on_change: bool
+) -> TopicSummary:
+    """Statistics of one topic; intervals from the header stamps where there are some (free of
+    transport jitter), else from the receive times."""
+    t = bag_ns * 1e-9
+    n = int(t.size)
+    if n == 0:
+        nan = float("nan")
+        return TopicSummary(topic, msgtype, 0, nan, nan, 0.0, 0.0)
+    clock = np.sort(stamp_ns) * 1e-9 if stamp_ns is not None and stamp_ns.size else t
+    dt = np.diff(clock)
+    span = t[-1] - t[0]
+    kw: dict[str, Any] = {}
+    if n >= 3:
+        median = float(np.median(dt))
+        q25, q75 = np.percentile(dt, [25, 75])
+        periodic = not on_change and median > 0 and (q75 - q25) <= PERIODIC_IQR * median
+        kw["pattern"] = "periodic" if periodic else "on change"
+        kw["period_s"] = median
+        if periodic:
+            kw["gaps"] = int(np.sum(dt > GAP_FACTOR * median))
+    if dt.size:
+        kw["largest_gap_at_s"] = float(clock[int(np.argmax(dt))])
+    if stamp_ns is not None and stamp_ns.size:
+        kw["header"] = True
+        latest = np.maximum.accumulate(stamp_ns)
+        behind = (latest[:-1] - stamp_ns[1:]) * 1e-9
+        back = np.flatnonzero(behind > BACKWARDS_S)
+        if back.size:
+            kw["backwards"] = int(back.size)
+            kw["backwards_at_s"] = float(t[back[0] + 1])
+            kw["backwards_by_s"] = float(behind[back].max())
+        kw["latency_s"] = float(np.median((bag_ns - stamp_ns) * 1e-9))
+    return TopicSummary(
+        topic=topic,
+        msgtype=msgtype,
+        count=n,
+        first_s=float(t[0]),
+        last_s=float(t[-1]),
+        rate_hz=float((n - 1) / span) if span > 0 else 0.0,
+        max_gap_s=float(np.max(dt)) if dt.size else 0.0,
+        **kw,
+    )
+
+
+def inspect_bag(path: str | os.PathLike, on_change: Collection[str] = ()) -> BagSummary:
+    """Topics, types, message counts, rates, gaps, header-stamp order and latency of one bag
+    (reads every record; header stamps come from the raw bytes of messages whose first field is
+    a ``std_msgs/Header``, checked against the deserialised first message of each topic).
+
+    ``on_change``: topics known to be published on change (a topic map's commands and markers),
+    never called gappy; other topics are classified by the regularity of their intervals.
+    """
     p = Path(path)
     fmt = bag_format(p)
     with open_bag(p) as reader:
         times: dict[str, list[int]] = {c.topic: [] for c in reader.connections}
+        stamps: dict[str, list[int] | None] = {}
         types = {c.topic: c.msgtype for c in reader.connections}
+        raw_fmt = "ros1" if fmt == "ros1" else "cdr"
         last_topic, last_ns = None, None
         try:
-            for conn, t_ns, _ in reader.messages():
+            for conn, t_ns, raw in reader.messages():
                 last_topic, last_ns = conn.topic, t_ns
                 times[conn.topic].append(t_ns)
+                if conn.topic not in stamps:
+                    msg = reader.deserialize(raw, conn.msgtype)
+                    fields = list(getattr(msg, "__dataclass_fields__", ()))
+                    has_header = bool(fields) and fields[0] == "header"
+                    if has_header and stamp_ns(msg) != _raw_stamp(raw, raw_fmt):
+                        has_header = False  # a layout this parser does not know: skip
+                    stamps[conn.topic] = [] if has_header else None
+                if stamps[conn.topic] is not None:
+                    stamps[conn.topic].append(_raw_stamp(raw, raw_fmt))
         except Exception as err:
             raise BagError(
                 p, f"corrupt or truncated bag ({_one_line(err)})", last_topic, last_ns
             ) from None
     summaries = []
-    starts, ends = [], []
     for topic in sorted(times):
-        t = np.asarray(times[topic], dtype=np.int64) * 1e-9
-        if t.size:
-            starts.append(t[0])
-            ends.append(t[-1])
-        span = t[-1] - t[0] if t.size > 1 else 0.0
-        dt = np.diff(t)
-        gaps = int(np.sum(dt > 3 * np.median(dt))) if dt.size > 2 else 0
-        summaries.append(
-            TopicSummary(
-                topic=topic,
-                msgtype=types[topic],
-                count=int(t.size),
-                first_s=float(t[0]) if t.size else float("nan"),
-                last_s=float(t[-1]) if t.size else float("nan"),
-                rate_hz=float((t.size - 1) / span) if span > 0 else 0.0,
-                max_gap_s=float(np.max(dt)) if t.size > 1 else 0.0,
-                gaps=gaps,
-            )
-        )
+        bag_ns = np.asarray(times[topic], dtype=np.int64)
+        st = stamps.get(topic)
+        stamps_ns = None if st is None else np.asarray(st, np.int64)
+        summaries.append(_summarise(topic, types[topic], bag_ns, stamps_ns, topic in on_change))
+    starts = [s.first_s for s in summaries if s.count]
+    ends = [s.last_s for s in summaries if s.count]
     start = min(starts) if starts else 0.0
     end = max(ends) if ends else 0.0
     return BagSummary(path=str(p), format=fmt, start_s=start, end_s=end, topics=tuple(summaries))

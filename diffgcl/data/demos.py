@@ -8,22 +8,40 @@ On disk a dataset is a folder with two files:
 * ``meta.json`` — ``{"format": "diffgcl-demos/1", "env": str, "dt": float, "episodes": [dict]}``,
   one metadata dict per episode (source file, time span, obstacle, swerve side, set, seed, ...).
 
-Files are written to a temporary folder and renamed, so a crash never leaves half a dataset.
+Files are written through :func:`diffgcl.io.write_folder` (kind :data:`DEMO_FOLDER`): a crash
+never leaves half a dataset, an earlier dataset in the folder is replaced atomically, and a folder
+holding anything else is refused (or, with ``overwrite``, only ``demos.npz`` and ``meta.json``
+are replaced in it).
 """
 
 from __future__ import annotations
 
 import json
 import os
-import shutil
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from diffgcl.io import FolderKind, write_folder
+
 FORMAT = "diffgcl-demos/1"
+FILES = ("demos.npz", "meta.json")
+
+
+def _owned_files(folder: Path) -> frozenset[str] | None:
+    """The files a dataset folder got from :meth:`DemoSet.save`, None if it is not a dataset."""
+    try:
+        meta = json.loads((folder / "meta.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+        return None
+    return frozenset(FILES)
+
+
+DEMO_FOLDER = FolderKind("demo dataset", _owned_files, marker="meta.json")
 
 
 class DemoError(ValueError):
@@ -78,22 +96,16 @@ class DemoSet:
     def horizon(self) -> int:
         return self.U.shape[1]
 
-    def save(self, directory: str | os.PathLike) -> Path:
-        """Write ``demos.npz`` and ``meta.json`` atomically into ``directory``."""
-        out = Path(directory)
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-        try:
+    def save(self, directory: str | os.PathLike, overwrite: bool = False) -> Path:
+        """Write ``demos.npz`` and ``meta.json`` into ``directory`` (rules of
+        :func:`diffgcl.io.write_folder`: a non-empty folder that is not a dataset raises
+        :class:`diffgcl.io.OutputError` unless ``overwrite``)."""
+        meta = {"format": FORMAT, "env": self.env, "dt": self.dt, "episodes": self.episodes}
+        text = json.dumps(meta, indent=1, default=_json_default)
+        with write_folder(directory, DEMO_FOLDER, overwrite) as tmp:
             np.savez_compressed(tmp / "demos.npz", X=self.X, U=self.U, O=self.O, mask=self.mask)
-            meta = {"format": FORMAT, "env": self.env, "dt": self.dt, "episodes": self.episodes}
-            (tmp / "meta.json").write_text(json.dumps(meta, indent=1, default=_json_default))
-            if out.exists():
-                shutil.rmtree(out)
-            tmp.rename(out)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
-            raise
-        return out
+            (tmp / "meta.json").write_text(text)
+        return Path(directory)
 
     @classmethod
     def load(cls, directory: str | os.PathLike) -> DemoSet:

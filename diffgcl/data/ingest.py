@@ -1,36 +1,47 @@
 """From ROS bags to a validated demonstration dataset (host side, NumPy, outside jit).
 
 Problem: a bag holds asynchronous streams — an INS pose at 20 Hz, an IMU at 50 Hz, radar
-sweeps every 2 s, operator commands only when the operator moves the stick — each with its own
-latency, dropouts and clock. GCL needs, per episode, states ``X: [T+1, dX]`` and actions
-``U: [T, dU]`` on the hull model's time grid, plus observations ``O: [T+1, dO]`` comparable to
-the simulator's range sensors. The steps, all in integer nanoseconds to keep ROS1 and ROS2 bit
-for bit alike:
+sweeps every 2.5 s, operator commands only when the operator moves the stick — each with its own
+latency, dropouts, clock, frame and units. GCL needs, per episode, states ``X: [T+1, dX]`` and
+actions ``U: [T, dU]`` on the hull model's time grid, plus observations ``O: [T+1, dO]``
+comparable to the simulator's range sensors. The steps, all in integer nanoseconds to keep ROS1
+and ROS2 bit for bit alike:
 
-1. *Time stamps.* A message's time is its header stamp where it has one (non-zero), its bag
-   (receive) time otherwise. Stamps of one topic must not decrease (error otherwise).
-2. *Signals.* Each role of the :class:`~diffgcl.data.topics.TopicMap` is decoded into
-   ``(t: [n], v: [n, k])``: positions in a local East-North-Up frame (NavSatFix latitude /
-   longitude through a local tangent plane at the datum), unwrapped heading, body-frame
-   velocities rotated to the world frame, commands in SI units.
-3. *Segmentation.* Episodes come from ``start``/``end`` marker messages when the bag has them,
-   otherwise from rules (:class:`SegmentRules`): maximal stretches where the boat is underway,
-   split at long position gaps.
+1. *Signals* (:mod:`diffgcl.data.signals`): each role of the
+   :class:`~diffgcl.data.topics.TopicMap` is timed (header stamp or receive time, minus latency;
+   broken stamps an error or dropped) and decoded into ``(t: [n], v: [n, k])`` in the local
+   East-North-Up frame and SI units.
+2. *Scans* (:mod:`diffgcl.data.scans`): LiDAR and radar returns in the hull frame, through the
+   topic map's clutter filter (range and intensity gates, persistence over scans in the local
+   frame).
+3. *Segmentation* (:mod:`diffgcl.data.segment`): ``start``/``end`` markers when the bag has
+   them, otherwise rules: underway stretches cut at U-turns.
 4. *Time grid.* Per episode, the grid ``t_k`` is every whole multiple of ``dt`` (in bag time)
    inside the episode. Continuous signals are interpolated linearly, never across a gap longer
    than the role's ``max_gap``; commands are held (zero-order hold) from each change; the
-   per-step validity mask is the conjunction of the required signals' validity.
-5. *Observations.* Each LiDAR scan / radar sweep is turned into points in the hull frame and
-   reduced by :func:`diffgcl.sim.sensors.ranges_from_points` to the simulator's beams, held until
-   the next scan (at most ``max_gap``).
-6. *Output.* Episodes are padded to a common horizon (last value held, mask 0) into a
+   per-step validity mask is the conjunction of the required signals' validity. Masked spans are
+   reported per topic ("topic /x: 20.1 s without messages from t=... — 203 of 661 steps masked").
+5. *Obstacle.* The surveyed position (mean of the obstacle topic in the episode) or, without an
+   obstacle topic, the static object the boat headed for and passed within the gate
+   (:func:`diffgcl.data.scans.estimate_obstacle`, LiDAR first, radar otherwise). Without markers,
+   a piece that passes no obstacle is a transit and skipped; an ambiguous episode is skipped or
+   kept flagged (``obstacle_search.ambiguous``); every skip is a warning naming the span.
+6. *Observations.* At each grid step the latest scan (at most ``max_gap`` old) is re-expressed
+   from the boat's pose at that step (motion compensation; the scan's own hull-frame points where
+   a pose is missing) and reduced to the simulator's beams: LiDAR by
+   :func:`diffgcl.sim.sensors.ranges_from_points`, radar by
+   :func:`diffgcl.data.scans.radar_sector_ranges` (nearest return per sector).
+7. *Output.* Episodes are padded to a common horizon (last value held, mask 0) into a
    :class:`~diffgcl.data.demos.DemoSet` (``env="hull"``; X, U in the layout of
    :mod:`diffgcl.sim.hull`, O in that of :func:`diffgcl.envs.hull.observation`), with metadata
    per episode: ``source`` (bag), ``episode_in_bag``, ``t_start``/``t_end`` (s) and
    ``t_start_ns``, ``steps`` (T of this episode before padding), ``cropped``, ``segmentation``
-   (``markers``/``rules``), ``datum``, ``set``, ``obstacle`` (pole colour from the marker, else
-   ``unknown``), ``obstacle_xy``, ``swerve_side`` (``left``/``right``, from the track at the
-   closest approach), ``valid_fraction``, ``actuators`` (``feedback``/``reconstructed``),
+   (``markers``/``rules``), ``marker_id`` (a bare token of the start marker), ``datum``, ``set``,
+   ``obstacle`` (pole colour from the marker, else ``unknown``), ``obstacle_xy``,
+   ``obstacle_source`` (``topic``/``lidar``/``radar``), ``obstacle_spread_m`` (RMS scatter of the
+   fixes or returns about it), ``obstacle_scans``, ``obstacle_ambiguous``,
+   ``obstacle_candidates`` (scans only), ``swerve_side`` (``left``/``right``, from the track at
+   the closest approach), ``valid_fraction``, ``actuators`` (``feedback``/``reconstructed``),
    ``lidar``/``radar`` (present) and ``*_valid_fraction``, ``warnings``, plus any other
    ``key=value`` of the start marker.
 
@@ -41,88 +52,75 @@ masks and :class:`IngestWarning` warnings, recorded in the episode metadata as w
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import warnings
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from diffgcl.data.bags import BagError, TopicMessages, open_bag, read_topics
-from diffgcl.data.demos import DemoSet
-from diffgcl.data.topics import CommandSpec, RangeSensorSpec, TopicMap, default_topic_map
-
-NS = 1_000_000_000
-
-# WGS-84 ellipsoid, for the local tangent plane of lat/lon positions.
-_WGS84_A = 6378137.0
-_WGS84_F = 1.0 / 298.257223563
-_WGS84_E2 = _WGS84_F * (2.0 - _WGS84_F)
-
-# Message types each role accepts.
-POSITION_TYPES = ("nav_msgs/msg/Odometry", "sensor_msgs/msg/NavSatFix")
-HEADING_TYPES = ("sensor_msgs/msg/Imu", "nav_msgs/msg/Odometry")
-VELOCITY_TYPES = ("nav_msgs/msg/Odometry",)
-SCAN_TYPES = (
-    "sensor_msgs/msg/LaserScan",
-    "sensor_msgs/msg/PointCloud2",
-    "odin_msgs/msg/RadarSector",
+from diffgcl.data.bags import BagError, IngestWarning, open_bag, read_topics
+from diffgcl.data.demos import DEMO_FOLDER, DemoSet
+from diffgcl.data.scans import (
+    Scans,
+    coast,
+    decode_scans,
+    estimate_obstacle,
+    find_objects,
+    persistent,
+    radar_sector_ranges,
+    to_hull,
+    to_world,
 )
-OBSTACLE_TYPES = ("sensor_msgs/msg/NavSatFix", "geometry_msgs/msg/PointStamped")
-MARKER_TYPES = ("std_msgs/msg/String",)
+from diffgcl.data.segment import segments_from_markers, segments_from_rules
+from diffgcl.data.signals import (
+    Signal,
+    decode_commands,
+    decode_heading,
+    decode_obstacle,
+    decode_position,
+    decode_velocity,
+    first_order_lag,
+    gap_spans,
+    hold,
+    interpolate,
+    message_times,
+    time_grid,
+)
+from diffgcl.data.topics import TopicMap, default_topic_map
+from diffgcl.io import check_output_folder
 
-
-class IngestWarning(UserWarning):
-    """A recoverable problem in a bag (dropout, missing optional sensor)."""
-
-
-@dataclass(frozen=True)
-class SegmentRules:
-    """Episode segmentation when a bag has no markers.
-
-    An episode is a maximal stretch where the speed over ground is at least ``min_speed`` (m/s;
-    dips shorter than ``bridge_s`` are bridged) and the position stream has no gap longer than
-    ``split_gap_s``. ``min_obstacle_distance`` (m), when set, also requires that the boat comes
-    that close to the pole (only with an obstacle topic), which discards transits.
-    """
-
-    min_speed: float = 1.0
-    bridge_s: float = 3.0
-    split_gap_s: float = 5.0
-    min_obstacle_distance: float | None = None
+__all__ = [
+    "Episode",
+    "IngestConfig",
+    "IngestWarning",
+    "convert",
+    "episodes_to_demos",
+    "ingest_bag",
+    "ingest_bags",
+    "swerve_side",
+]
 
 
 @dataclass(frozen=True)
 class IngestConfig:
-    """How bags become demonstrations.
+    """How bags become demonstrations (what the boat recorded is in the topic map).
 
     dt: model time step (s); horizon: T of the output (episodes are padded with mask 0, longer
     ones cropped; None = the longest episode); env: name stored in the dataset;
     sensors: the simulator's range sensor layout used for observations (None: the default
-    :class:`diffgcl.sim.sensors.SensorLayout`); tau_thrust / tau_nozzle: actuator lags used to
-    reconstruct the actuator states from commands when the bag has no jet feedback.
+    :class:`diffgcl.sim.sensors.SensorLayout`); observations: reduce scans to beams (False:
+    ``dO = 0``).
     """
 
     dt: float = 0.1
     horizon: int | None = None
     env: str = "hull"
     sensors: Any = None
-    tau_thrust: float = 1.5
-    tau_nozzle: float = 0.3
-    segment: SegmentRules = field(default_factory=SegmentRules)
     observations: bool = True
-
-
-@dataclass(frozen=True)
-class Signal:
-    """A decoded signal: t: [n] int64 ns (sorted), v: [n, k] float64, max_gap: s."""
-
-    topic: str
-    t: np.ndarray
-    v: np.ndarray
-    max_gap: float
 
 
 @dataclass(frozen=True)
@@ -138,403 +136,16 @@ class Episode:
     meta: dict
 
 
-# --------------------------------------------------------------------------------------------
-# Geometry helpers
-# --------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class SensorReturns:
+    """One range sensor of a bag: the gated scans, their returns in the local frame (None
+    where the pose at the scan is unknown) and what the clutter filter keeps (hull and local
+    frame)."""
 
-
-def latlon_to_local(lat, lon, datum: tuple[float, float]) -> np.ndarray:
-    """Local East-North (m) of WGS-84 ``lat, lon`` (deg, [n]) around ``datum`` -> [n, 2].
-
-    Local tangent plane with the ellipsoid's meridional and prime-vertical radii at the datum;
-    exact to a few mm within a few km, plenty for one harbour.
-    """
-    lat0 = np.deg2rad(datum[0])
-    s2 = np.sin(lat0) ** 2
-    rn = _WGS84_A / np.sqrt(1.0 - _WGS84_E2 * s2)
-    rm = rn * (1.0 - _WGS84_E2) / (1.0 - _WGS84_E2 * s2)
-    east = np.deg2rad(np.asarray(lon, float) - datum[1]) * rn * np.cos(lat0)
-    north = np.deg2rad(np.asarray(lat, float) - datum[0]) * rm
-    return np.stack([east, north], axis=-1)
-
-
-def local_to_latlon(xy, datum: tuple[float, float]) -> np.ndarray:
-    """Inverse of :func:`latlon_to_local`: xy: [n, 2] (m) -> [n, 2] (lat, lon deg)."""
-    xy = np.asarray(xy, float)
-    lat0 = np.deg2rad(datum[0])
-    s2 = np.sin(lat0) ** 2
-    rn = _WGS84_A / np.sqrt(1.0 - _WGS84_E2 * s2)
-    rm = rn * (1.0 - _WGS84_E2) / (1.0 - _WGS84_E2 * s2)
-    lat = datum[0] + np.rad2deg(xy[..., 1] / rm)
-    lon = datum[1] + np.rad2deg(xy[..., 0] / (rn * np.cos(lat0)))
-    return np.stack([lat, lon], axis=-1)
-
-
-def quaternion_yaw(x, y, z, w) -> np.ndarray:
-    """Yaw (rad, about +z) of quaternions given component-wise ([n] each)."""
-    return np.arctan2(2.0 * (w * z + x * y), 1.0 - 2.0 * (y * y + z * z))
-
-
-# --------------------------------------------------------------------------------------------
-# Decoding messages into signals
-# --------------------------------------------------------------------------------------------
-
-
-def _field(msg: Any, path: str) -> Any:
-    for part in path.split("."):
-        msg = getattr(msg, part)
-    return msg
-
-
-# Header stamps may arrive slightly out of order (transport jitter); a step back larger than this
-# is a clock jump or a corrupt stamp, i.e. "time going backwards".
-MAX_REORDER_S = 0.5
-
-
-def order_by_stamp(path, data: TopicMessages) -> TopicMessages:
-    """``data`` sorted by header stamp; raises :class:`BagError` if a stamp jumps backwards by
-    more than :data:`MAX_REORDER_S` relative to the latest stamp seen so far."""
-    t = data.stamp_ns
-    if t.size < 2:
-        return data
-    latest = np.maximum.accumulate(t)
-    back = np.flatnonzero(latest[:-1] - t[1:] > MAX_REORDER_S * NS)
-    if back.size:
-        i = back[0] + 1
-        raise BagError(
-            path,
-            f"time goes backwards (stamp {t[i] * 1e-9:.3f}s after {latest[i - 1] * 1e-9:.3f}s)",
-            data.topic,
-            data.bag_ns[i],
-        )
-    if np.all(np.diff(t) >= 0):
-        return data
-    order = np.argsort(t, kind="stable")
-    return TopicMessages(
-        data.topic,
-        data.msgtype,
-        data.bag_ns[order],
-        t[order],
-        tuple(data.msgs[i] for i in order),
-    )
-
-
-def _check_finite(path, topic: str, t: np.ndarray, v: np.ndarray, what: str) -> None:
-    bad = ~np.isfinite(v.reshape(len(t), -1)).all(axis=1)
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise BagError(path, f"non-finite {what} (NaN or inf)", topic, t[i])
-
-
-def _require_type(path, topic: str, data: TopicMessages, allowed: Sequence[str], role: str):
-    if data.msgtype not in allowed:
-        t0 = data.bag_ns[0] if data.bag_ns.size else None
-        raise BagError(
-            path,
-            f"unknown message type {data.msgtype} for {role} (supported: {', '.join(allowed)})",
-            topic,
-            t0,
-        )
-
-
-def _signal(path, data: TopicMessages, values: np.ndarray, max_gap: float, what: str) -> Signal:
-    t = data.stamp_ns
-    _check_finite(path, data.topic, t, values, what)
-    return Signal(data.topic, t, values.reshape(len(t), -1).astype(np.float64), max_gap)
-
-
-def decode_position(path, data: TopicMessages, max_gap: float, datum) -> tuple[Signal, tuple]:
-    """Position [n, 2] in the local frame; returns (signal, datum used)."""
-    _require_type(path, data.topic, data, POSITION_TYPES, "position")
-    if data.msgtype == "nav_msgs/msg/Odometry":
-        xy = np.array([[m.pose.pose.position.x, m.pose.pose.position.y] for m in data.msgs])
-        return _signal(path, data, xy.reshape(-1, 2), max_gap, "position"), datum
-    fix = np.array([m.status.status >= 0 for m in data.msgs], bool)
-    if (~fix).any():
-        warnings.warn(
-            f"{path}: topic {data.topic}: {int((~fix).sum())} NavSatFix messages without a fix "
-            "dropped",
-            IngestWarning,
-            stacklevel=2,
-        )
-    ll = np.array([[m.latitude, m.longitude] for m in data.msgs]).reshape(-1, 2)
-    _check_finite(path, data.topic, data.stamp_ns, ll, "latitude/longitude")
-    if datum is None:
-        if not fix.any():
-            raise BagError(path, "no GNSS fix in the whole bag", data.topic)
-        datum = (float(ll[fix][0, 0]), float(ll[fix][0, 1]))
-    xy = latlon_to_local(ll[:, 0], ll[:, 1], datum)
-    kept = TopicMessages(
-        data.topic,
-        data.msgtype,
-        data.bag_ns[fix],
-        data.stamp_ns[fix],
-        tuple(m for m, f in zip(data.msgs, fix, strict=True) if f),
-    )
-    return _signal(path, kept, xy[fix], max_gap, "position"), datum
-
-
-def decode_heading(path, data: TopicMessages, max_gap: float) -> tuple[Signal, Signal | None]:
-    """Unwrapped heading [n, 1] and, from an Imu, yaw rate [n, 1]."""
-    _require_type(path, data.topic, data, HEADING_TYPES, "heading")
-    if data.msgtype == "sensor_msgs/msg/Imu":
-        q = np.array([[o.x, o.y, o.z, o.w] for o in (m.orientation for m in data.msgs)]).reshape(
-            -1, 4
-        )
-        rate = np.array([m.angular_velocity.z for m in data.msgs], float)
-    else:
-        q = np.array(
-            [
-                [
-                    m.pose.pose.orientation.x,
-                    m.pose.pose.orientation.y,
-                    m.pose.pose.orientation.z,
-                    m.pose.pose.orientation.w,
-                ]
-                for m in data.msgs
-            ]
-        ).reshape(-1, 4)
-        rate = np.array([m.twist.twist.angular.z for m in data.msgs], float)
-    _check_finite(path, data.topic, data.stamp_ns, q, "orientation")
-    yaw = np.unwrap(quaternion_yaw(q[:, 0], q[:, 1], q[:, 2], q[:, 3]))
-    heading = _signal(path, data, yaw, max_gap, "heading")
-    return heading, _signal(path, data, rate, max_gap, "yaw rate")
-
-
-def decode_velocity(path, data: TopicMessages, max_gap: float) -> Signal:
-    """World-frame velocity [n, 2] from an Odometry twist (body frame, rotated by its own yaw)."""
-    _require_type(path, data.topic, data, VELOCITY_TYPES, "velocity")
-    rows = [
-        [
-            m.twist.twist.linear.x,
-            m.twist.twist.linear.y,
-            quaternion_yaw(
-                m.pose.pose.orientation.x,
-                m.pose.pose.orientation.y,
-                m.pose.pose.orientation.z,
-                m.pose.pose.orientation.w,
-            ),
-        ]
-        for m in data.msgs
-    ]
-    a = np.array(rows, float).reshape(-1, 3)
-    c, s = np.cos(a[:, 2]), np.sin(a[:, 2])
-    world = np.stack([c * a[:, 0] - s * a[:, 1], s * a[:, 0] + c * a[:, 1]], axis=-1)
-    return _signal(path, data, world, max_gap, "velocity")
-
-
-def decode_commands(path, data: TopicMessages, spec: CommandSpec, role: str) -> Signal:
-    """[thrust (N), nozzle (rad)]: [n, 2] from any message with the two configured fields."""
-    try:
-        v = np.array(
-            [
-                [
-                    float(_field(m, spec.thrust_field)) * spec.thrust_scale,
-                    float(_field(m, spec.nozzle_field)) * spec.nozzle_scale,
-                ]
-                for m in data.msgs
-            ]
-        ).reshape(-1, 2)
-    except (AttributeError, TypeError, ValueError):
-        raise BagError(
-            path,
-            f"unknown message type {data.msgtype} for {role} (needs fields "
-            f"{spec.thrust_field!r} and {spec.nozzle_field!r})",
-            data.topic,
-            data.bag_ns[0] if data.bag_ns.size else None,
-        ) from None
-    return _signal(path, data, v, spec.max_gap, role)
-
-
-def scan_points(path, data: TopicMessages, spec: RangeSensorSpec) -> list[np.ndarray]:
-    """Each scan as points [m, 2] in the hull frame (sensor mount applied); returns a list."""
-    _require_type(path, data.topic, data, SCAN_TYPES, "range sensor")
-    mx, my, myaw = spec.mount
-    c, s = np.cos(myaw), np.sin(myaw)
-    out = []
-    for m, t in zip(data.msgs, data.stamp_ns, strict=True):
-        if data.msgtype == "sensor_msgs/msg/LaserScan":
-            r = np.asarray(m.ranges, float)
-            a = m.angle_min + m.angle_increment * np.arange(r.size)
-            ok = np.isfinite(r) & (r >= m.range_min) & (r <= m.range_max)
-            pts = np.stack([r[ok] * np.cos(a[ok]), r[ok] * np.sin(a[ok])], axis=-1)
-        elif data.msgtype == "odin_msgs/msg/RadarSector":
-            r = np.asarray(m.ranges, float)
-            a = np.asarray(m.bearings, float)
-            if r.shape != a.shape:
-                raise BagError(path, "radar bearings and ranges differ in length", data.topic, t)
-            if not (np.isfinite(r).all() and np.isfinite(a).all()):
-                raise BagError(path, "non-finite radar detection (NaN or inf)", data.topic, t)
-            pts = np.stack([r * np.cos(a), r * np.sin(a)], axis=-1)
-        else:
-            pts = _pointcloud2_xy(path, data.topic, t, m)
-        hull = np.stack([mx + c * pts[:, 0] - s * pts[:, 1], my + s * pts[:, 0] + c * pts[:, 1]])
-        out.append(hull.T.reshape(-1, 2))
-    return out
-
-
-def _pointcloud2_xy(path, topic: str, t: int, msg: Any) -> np.ndarray:
-    names = {f.name: f for f in msg.fields}
-    if "x" not in names or "y" not in names:
-        raise BagError(path, "PointCloud2 without x/y fields", topic, t)
-    for n in ("x", "y"):
-        if names[n].datatype != 7:  # FLOAT32
-            raise BagError(path, f"PointCloud2 field {n} is not float32", topic, t)
-    order = ">" if msg.is_bigendian else "<"
-    n = int(msg.width) * int(msg.height)
-    raw = np.asarray(msg.data, np.uint8).tobytes()
-    dtype = np.dtype(
-        {
-            "names": ["x", "y"],
-            "formats": [order + "f4", order + "f4"],
-            "offsets": [names["x"].offset, names["y"].offset],
-            "itemsize": int(msg.point_step),
-        }
-    )
-    pts = np.frombuffer(raw, dtype=dtype, count=n)
-    xy = np.stack([pts["x"], pts["y"]], axis=-1).astype(np.float64)
-    return xy[np.isfinite(xy).all(axis=1)]
-
-
-# --------------------------------------------------------------------------------------------
-# Resampling on the grid
-# --------------------------------------------------------------------------------------------
-
-
-def interpolate(sig: Signal, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Linear interpolation of ``sig`` at ``grid: [K]`` ns -> (values [K, k], valid [K]).
-
-    A grid point is valid when it lies between two samples at most ``max_gap`` apart (or on a
-    sample); nothing is extrapolated.
-    """
-    t, v = sig.t, sig.v
-    K = grid.size
-    out = np.zeros((K, v.shape[1]))
-    valid = np.zeros(K, bool)
-    if t.size == 0:
-        return out, valid
-    hi = np.searchsorted(t, grid, side="left")
-    exact = (hi < t.size) & (t[np.minimum(hi, t.size - 1)] == grid)
-    lo = np.clip(hi - 1, 0, t.size - 1)
-    hi_c = np.clip(hi, 0, t.size - 1)
-    inside = (hi > 0) & (hi < t.size)
-    gap = (t[hi_c] - t[lo]) * 1e-9
-    valid = exact | (inside & (gap <= sig.max_gap + 1e-9))
-    span = np.maximum(t[hi_c] - t[lo], 1)
-    w = np.where(inside, (grid - t[lo]) / span, 0.0)[:, None]
-    out = np.where(exact[:, None], v[hi_c], (1.0 - w) * v[lo] + w * v[hi_c])
-    return out, valid
-
-
-def hold(sig: Signal, grid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Zero-order hold of ``sig`` at ``grid: [K]`` -> (values [K, k], valid [K]).
-
-    Valid from the first sample on; with ``max_gap > 0`` a value older than that is invalid.
-    """
-    idx = np.searchsorted(sig.t, grid, side="right") - 1
-    valid = idx >= 0
-    values = (
-        sig.v[np.clip(idx, 0, max(sig.t.size - 1, 0))]
-        if sig.t.size
-        else np.zeros((grid.size, sig.v.shape[1]))
-    )
-    if sig.max_gap > 0 and sig.t.size:
-        age = (grid - sig.t[np.clip(idx, 0, sig.t.size - 1)]) * 1e-9
-        valid &= age <= sig.max_gap + 1e-9
-    return values, valid
-
-
-def time_grid(t_start: int, t_end: int, dt: float) -> np.ndarray:
-    """Every whole multiple of ``dt`` (in bag time, ns) within [t_start, t_end]: [K] int64."""
-    step = round(dt * NS)
-    first = -(-t_start // step) * step
-    return np.arange(first, t_end + 1, step, dtype=np.int64)
-
-
-def first_order_lag(cmd: np.ndarray, x0: np.ndarray, dt: float, tau: np.ndarray) -> np.ndarray:
-    """Actuator states [K, k] of the lag s' = c + (s - c) exp(-dt/tau) driven by cmd: [K, k]."""
-    decay = np.exp(-dt / np.asarray(tau, float))
-    out = np.empty_like(cmd)
-    s = np.asarray(x0, float)
-    for k in range(cmd.shape[0]):
-        out[k] = s
-        s = cmd[k] + (s - cmd[k]) * decay
-    return out
-
-
-# --------------------------------------------------------------------------------------------
-# Segmentation
-# --------------------------------------------------------------------------------------------
-
-
-def parse_marker(text: str) -> tuple[str, dict[str, str]]:
-    """``"start set=2 pole=green"`` -> ("start", {"set": "2", "pole": "green"})."""
-    parts = text.split()
-    kind = parts[0].lower() if parts else ""
-    info = dict(p.split("=", 1) for p in parts[1:] if "=" in p)
-    return kind, info
-
-
-def segments_from_markers(path, data: TopicMessages) -> list[tuple[int, int, dict]]:
-    """(start ns, end ns, info) per ``start``/``end`` pair; unmatched markers are errors."""
-    _require_type(path, data.topic, data, MARKER_TYPES, "markers")
-    out, open_at, info = [], None, {}
-    for m, t in zip(data.msgs, data.stamp_ns, strict=True):
-        kind, kv = parse_marker(m.data)
-        if kind == "start":
-            if open_at is not None:
-                raise BagError(path, "episode start marker inside an open episode", data.topic, t)
-            open_at, info = int(t), kv
-        elif kind == "end":
-            if open_at is None:
-                raise BagError(path, "episode end marker without a start", data.topic, t)
-            out.append((open_at, int(t), info))
-            open_at = None
-    if open_at is not None:
-        raise BagError(path, "episode start marker without an end", data.topic, open_at)
-    return out
-
-
-def segments_from_rules(
-    position: Signal, velocity: Signal | None, rules: SegmentRules, obstacle_xy=None
-) -> list[tuple[int, int, dict]]:
-    """(start ns, end ns, {}) of the stretches where the boat is underway (see SegmentRules)."""
-    t, p = position.t, position.v
-    if t.size < 2:
-        return []
-    if velocity is not None and velocity.t.size:
-        vel, _ = interpolate(Signal("", velocity.t, velocity.v, np.inf), t)
-        speed = np.linalg.norm(vel, axis=1)
-    else:
-        dtp = np.maximum(np.diff(t) * 1e-9, 1e-9)
-        v = np.linalg.norm(np.diff(p, axis=0), axis=1) / dtp
-        speed = np.concatenate([v[:1], v])
-    moving = speed >= rules.min_speed
-    gaps = np.diff(t) * 1e-9 > rules.split_gap_s
-    segs = []
-    start = None
-    last_moving = None
-    for i in range(t.size):
-        if i > 0 and gaps[i - 1] and start is not None:
-            segs.append((start, last_moving))
-            start = None
-        if moving[i]:
-            if start is None:
-                start = t[i]
-            elif (t[i] - last_moving) * 1e-9 > rules.bridge_s:
-                segs.append((start, last_moving))
-                start = t[i]
-            last_moving = t[i]
-    if start is not None:
-        segs.append((start, last_moving))
-    out = []
-    for a, b in segs:
-        if rules.min_obstacle_distance is not None and obstacle_xy is not None:
-            sel = (t >= a) & (t <= b)
-            if np.min(np.linalg.norm(p[sel] - obstacle_xy, axis=1)) > rules.min_obstacle_distance:
-                continue
-        out.append((int(a), int(b), {}))
-    return out
+    scans: Scans
+    world: tuple[np.ndarray | None, ...]
+    kept: tuple[np.ndarray, ...]
+    kept_world: tuple[np.ndarray | None, ...]
 
 
 # --------------------------------------------------------------------------------------------
@@ -563,6 +174,46 @@ def _warn(meta_warnings: list[str], message: str) -> None:
     warnings.warn(message, IngestWarning, stacklevel=3)
 
 
+def _sensor_returns(
+    path, data, spec, role: str, position: Signal, heading: Signal
+) -> SensorReturns:
+    scans = decode_scans(path, data, spec, role)
+    xy, ok_p = interpolate(position, scans.t)
+    psi, ok_h = interpolate(heading, scans.t)
+    world = tuple(
+        to_world(p, xy[i], psi[i, 0]) if ok_p[i] and ok_h[i] else None
+        for i, p in enumerate(scans.points)
+    )
+    persistence = spec.filter.persistence if spec.filter is not None else None
+    if persistence is None:
+        return SensorReturns(scans, world, scans.points, world)
+    keep = persistent(world, xy, persistence)
+    kept_world = [w[k] if w is not None else None for w, k in zip(world, keep, strict=True)]
+    kept_world = coast(kept_world, world, xy, persistence)
+    kept = tuple(
+        to_hull(w, xy[i], psi[i, 0]) if w is not None else scans.points[i][:0]
+        for i, w in enumerate(kept_world)
+    )
+    kept_world = tuple(kept_world)
+    return SensorReturns(scans, world, kept, kept_world)
+
+
+def _span_warnings(path, grid: np.ndarray, checks, what: str) -> list[str]:
+    """One warning per topic with invalid steps: its longest span, and how many more."""
+    out = []
+    for sig, ok in checks:
+        spans = gap_spans(sig, grid, ok)
+        if not spans:
+            continue
+        a, b, reason = spans[0]
+        text = f"{path}: topic {sig.topic}: {reason} — {b - a + 1} of {grid.size} steps {what}"
+        if len(spans) > 1:
+            rest = sum(q - p + 1 for p, q, _ in spans[1:])
+            text += f" (and {len(spans) - 1} shorter spans, {rest} steps)"
+        out.append(text)
+    return out
+
+
 def ingest_bag(
     path: str | os.PathLike, topic_map: TopicMap | None = None, config: IngestConfig | None = None
 ) -> list[Episode]:
@@ -573,105 +224,101 @@ def ingest_bag(
     tm = topic_map or default_topic_map()
     cfg = config or IngestConfig()
     with open_bag(path) as reader:
-        present = {c.topic for c in reader.connections}
+        present = sorted({c.topic for c in reader.connections})
         bag_start = reader.start_time if reader.connections else None
-    roles = tm.topics()
+    roles = tm.roles()
     for role in ("position", "heading", "commands"):
-        if roles[role] not in present:
-            raise BagError(path, f"missing required topic for {role}", roles[role], bag_start)
-    data = {
-        topic: order_by_stamp(path, msgs)
-        for topic, msgs in read_topics(path, set(roles.values())).items()
-    }
-    for role in ("position", "heading", "commands"):
-        if not data[roles[role]].msgs:
-            raise BagError(path, f"required topic for {role} has no messages", roles[role])
-
-    position, datum = decode_position(path, data[tm.position.topic], tm.position.max_gap, tm.datum)
-    heading, yaw_rate = decode_heading(path, data[tm.heading.topic], tm.heading.max_gap)
-    commands = decode_commands(path, data[tm.commands.topic], tm.commands, "commands")
-    velocity = None
-    if tm.velocity is not None and tm.velocity.topic in data:
-        velocity = decode_velocity(path, data[tm.velocity.topic], tm.velocity.max_gap)
-    actuators = None
-    if tm.actuators is not None and tm.actuators.topic in data:
-        actuators = decode_commands(path, data[tm.actuators.topic], tm.actuators, "actuators")
-    obstacle_sig = None
-    if tm.obstacle is not None and tm.obstacle.topic in data:
-        obstacle_sig = _decode_obstacle(path, data[tm.obstacle.topic], datum)
-
+        if roles[role].topic not in present:
+            raise BagError(
+                path,
+                f"missing required topic for {role} (topics in the bag: {', '.join(present)})",
+                roles[role].topic,
+                bag_start,
+            )
+    raw = read_topics(path, {spec.topic for spec in roles.values()})
     bag_warnings: list[str] = []
-    scans: dict[str, tuple[Signal, list[np.ndarray]] | None] = {}
-    for role, spec in (("lidar", tm.lidar), ("radar", tm.radar)):
+    timed = {}
+    for role, spec in roles.items():
+        if spec.topic in raw:
+            timed[role], note = message_times(path, raw[spec.topic], spec, role)
+            if note is not None:
+                _warn(bag_warnings, note)
+    for role in ("position", "heading", "commands"):
+        if not timed[role].msgs:
+            raise BagError(path, f"required topic for {role} has no messages", roles[role].topic)
+
+    position, datum = decode_position(path, timed["position"], tm.position, tm.datum)
+    heading, yaw_rate = decode_heading(path, timed["heading"], tm.heading)
+    commands = decode_commands(path, timed["commands"], tm.commands, "commands")
+    velocity = None
+    if "velocity" in timed and timed["velocity"].msgs:
+        velocity = decode_velocity(path, timed["velocity"], tm.velocity)
+    actuators = None
+    if "actuators" in timed and timed["actuators"].msgs:
+        actuators = decode_commands(path, timed["actuators"], tm.actuators, "actuators")
+    obstacle_sig = None
+    if "obstacle" in timed and timed["obstacle"].msgs:
+        obstacle_sig = decode_obstacle(path, timed["obstacle"], datum)
+
+    sensors: dict[str, SensorReturns | None] = {}
+    for role in ("lidar", "radar"):
+        spec = roles.get(role)
         if spec is None:
-            scans[role] = None
-            continue
-        if spec.topic not in data or not data[spec.topic].msgs:
+            sensors[role] = None
+        elif role not in timed or not timed[role].msgs:
             _warn(
                 bag_warnings,
                 f"{path}: topic {spec.topic}: optional {role} missing; its beams read no return",
             )
-            scans[role] = None
-            continue
-        d = data[spec.topic]
-        pts = scan_points(path, d, spec) if cfg.observations else []
-        index = np.arange(d.stamp_ns.size, dtype=float)[:, None]
-        scans[role] = (Signal(spec.topic, d.stamp_ns, index, spec.max_gap), pts)
+            sensors[role] = None
+        elif cfg.observations or obstacle_sig is None:
+            sensors[role] = _sensor_returns(path, timed[role], spec, role, position, heading)
+        else:
+            sensors[role] = None
 
-    if tm.markers is not None and tm.markers.topic in data and data[tm.markers.topic].msgs:
-        segments = segments_from_markers(path, data[tm.markers.topic])
+    if "markers" in timed and timed["markers"].msgs:
+        segments = segments_from_markers(path, timed["markers"])
         segmentation = "markers"
     else:
-        obstacle_xy = None if obstacle_sig is None else obstacle_sig.v.mean(axis=0)
-        segments = segments_from_rules(position, velocity, cfg.segment, obstacle_xy)
+        objects = _known_objects(obstacle_sig, sensors, tm)
+        segments, left_out = segments_from_rules(
+            position, heading, velocity, tm.segmentation, tm.obstacle_search, objects
+        )
         segmentation = "rules"
+        if left_out:
+            spans = ", ".join(f"{a * 1e-9:.1f}..{b * 1e-9:.1f}" for a, b in left_out[:6])
+            more = f" and {len(left_out) - 6} more" if len(left_out) > 6 else ""
+            what = (
+                "no run at an obstacle (headed for and passed within "
+                f"{tm.obstacle_search.gate:g} m)"
+                if objects is not None and tm.segmentation.require_obstacle
+                else "cut at turns"
+            )
+            _warn(
+                bag_warnings,
+                f"{path}: topic {tm.position.topic}: underway but not in an episode ({what}), "
+                f"left out: t={spans} s{more}",
+            )
     if not segments:
         raise BagError(
-            path, "no episode found (no markers, boat never underway)", tm.position.topic
+            path,
+            "no episode found (no markers; the boat never ran at an obstacle or was never "
+            "underway)",
+            tm.position.topic,
         )
+    lags = (
+        tm.actuator_lags.thrust or hull.HullParams().tau_thrust,
+        tm.actuator_lags.nozzle or hull.HullParams().tau_nozzle,
+    )
 
+    signals = _Signals(position, heading, yaw_rate, velocity, commands, actuators)
     episodes: list[Episode] = []
-    too_short: list[BagError] = []
+    skipped: list[BagError] = []
     for index, (t_a, t_b, info) in enumerate(segments):
         grid = time_grid(t_a, t_b, cfg.dt)
         ep_warnings = list(bag_warnings)
-        pos, ok_p = interpolate(position, grid)
-        psi, ok_h = interpolate(heading, grid)
-        if velocity is not None:
-            vel, ok_v = interpolate(velocity, grid)
-        else:
-            vel = np.gradient(pos, cfg.dt, axis=0) if grid.size > 1 else np.zeros_like(pos)
-            # np.gradient: central differences inside, one-sided at the ends.
-            before = np.concatenate([ok_p[:1], ok_p[:-1]])
-            after = np.concatenate([ok_p[1:], ok_p[-1:]])
-            ok_v = ok_p & before & after
-        if yaw_rate is not None:
-            rate, ok_r = interpolate(yaw_rate, grid)
-        else:
-            rate = np.gradient(psi[:, 0], cfg.dt)[:, None]
-            ok_r = ok_h
-        cmd, ok_c = hold(commands, grid)
-        if actuators is not None:
-            act, ok_a = interpolate(actuators, grid)
-        else:
-            act = first_order_lag(cmd, cmd[0], cfg.dt, (cfg.tau_thrust, cfg.tau_nozzle))
-            ok_a = ok_c
-        if obstacle_sig is not None:
-            sel = (obstacle_sig.t >= t_a) & (obstacle_sig.t <= t_b)
-            vals = obstacle_sig.v[sel] if sel.any() else obstacle_sig.v
-            obs_xy = np.broadcast_to(vals.mean(axis=0), (grid.size, 2))
-        else:
-            est = _obstacle_from_scans(scans, position, heading, t_a, t_b)
-            if est is None:
-                raise BagError(
-                    path,
-                    "no obstacle position (no obstacle topic and no range-sensor detections)",
-                    tm.obstacle.topic if tm.obstacle is not None else None,
-                    t_a,
-                )
-            _warn(ep_warnings, f"{path}: episode {index}: obstacle position estimated from scans")
-            obs_xy = np.broadcast_to(est, (grid.size, 2))
-        valid = ok_p & ok_h & ok_v & ok_r & ok_c & ok_a
+        g = _on_grid(signals, grid, cfg.dt, lags)
+        valid = g.valid
         valid_s = valid.sum() * cfg.dt
         if valid_s < tm.min_episode_s:
             short = BagError(
@@ -684,23 +331,36 @@ def ingest_bag(
                 raise short
             # Rule-based segments include brief manoeuvres in harbour: skip them.
             _warn(bag_warnings, f"{short} (segment skipped)")
-            too_short.append(short)
+            skipped.append(short)
             continue
-        if not valid.all():
+
+        # The obstacle: surveyed, or estimated from the scans of this episode.
+        track = (grid[valid], g.pos[valid], g.psi[valid, 0])
+        obstacle = _episode_obstacle(path, obstacle_sig, sensors, t_a, t_b, track, tm)
+        if isinstance(obstacle, BagError):
+            _warn(bag_warnings, str(obstacle))
+            skipped.append(obstacle)
+            continue
+        obstacle_xy, obstacle_meta, estimate = obstacle
+        if estimate is not None and estimate.ambiguous:
             _warn(
                 ep_warnings,
-                f"{path}: episode {index}: {int((~valid).sum())} of {valid.size} steps masked "
-                f"(dropouts) from t={grid[np.argmin(valid)] * 1e-9:.3f}s",
+                f"{path}: episode {index}: ambiguous obstacle from {estimate.sensor} scans "
+                f"({estimate.describe()}); kept, flagged obstacle_ambiguous",
             )
+        obs_xy = np.broadcast_to(obstacle_xy, (grid.size, 2))
+
+        for text in _span_warnings(path, grid, _topic_checks(g.checks), "masked"):
+            _warn(ep_warnings, text)
         X = np.zeros((grid.size, hull.DX))
-        X[:, hull.IX_PX : hull.IX_PY + 1] = pos
-        X[:, hull.IX_PSI] = psi[:, 0]
-        X[:, hull.IX_VX : hull.IX_VY + 1] = vel
-        X[:, hull.IX_R] = rate[:, 0]
-        X[:, hull.SL_ACT] = act
+        X[:, hull.IX_PX : hull.IX_PY + 1] = g.pos
+        X[:, hull.IX_PSI] = g.psi[:, 0]
+        X[:, hull.IX_VX : hull.IX_VY + 1] = g.vel
+        X[:, hull.IX_R] = g.rate[:, 0]
+        X[:, hull.SL_ACT] = g.act
         X[:, hull.SL_OBS] = obs_xy
-        U = cmd[:-1]
-        O, obs_meta = _observations(path, grid, X, scans, cfg, ep_warnings)
+        U = g.cmd[:-1]
+        O, obs_meta = _observations(path, grid, X, valid, sensors, cfg, ep_warnings)
         meta = {
             "source": str(path),
             "episode_in_bag": index,
@@ -712,7 +372,8 @@ def ingest_bag(
             "set": info.get("set"),
             "obstacle": info.get("pole", "unknown"),
             "obstacle_xy": obs_xy[0].tolist(),
-            "swerve_side": swerve_side(X, valid) if obstacle_sig is not None else "unknown",
+            **obstacle_meta,
+            "swerve_side": swerve_side(X, valid),
             "valid_fraction": float(valid.mean()),
             "actuators": "feedback" if actuators is not None else "reconstructed",
             **obs_meta,
@@ -724,53 +385,186 @@ def ingest_bag(
         X = _fill_invalid(X, valid)
         episodes.append(Episode(t=grid, X=X, U=U, O=O, mask=valid, meta=meta))
     if not episodes:
-        raise too_short[0]
+        raise skipped[0]
     return episodes
 
 
-def _decode_obstacle(path, data: TopicMessages, datum) -> Signal:
-    _require_type(path, data.topic, data, OBSTACLE_TYPES, "obstacle")
-    if data.msgtype == "sensor_msgs/msg/NavSatFix":
-        ll = np.array([[m.latitude, m.longitude] for m in data.msgs]).reshape(-1, 2)
-        _check_finite(path, data.topic, data.stamp_ns, ll, "obstacle latitude/longitude")
-        if datum is None:
-            raise BagError(path, "obstacle given as NavSatFix but no datum", data.topic)
-        xy = latlon_to_local(ll[:, 0], ll[:, 1], datum)
+@dataclass(frozen=True)
+class _Signals:
+    """The decoded signals of one bag (velocity and actuators may be absent)."""
+
+    position: Signal
+    heading: Signal
+    yaw_rate: Signal
+    velocity: Signal | None
+    commands: Signal
+    actuators: Signal | None
+
+
+@dataclass(frozen=True)
+class _OnGrid:
+    """The signals on one episode's grid (K steps): values, the validity of each, and (signal,
+    validity) pairs for the span warnings."""
+
+    pos: np.ndarray
+    psi: np.ndarray
+    vel: np.ndarray
+    rate: np.ndarray
+    cmd: np.ndarray
+    act: np.ndarray
+    valid: np.ndarray
+    checks: tuple
+
+
+def _on_grid(sig: _Signals, grid: np.ndarray, dt: float, lags) -> _OnGrid:
+    pos, ok_p = interpolate(sig.position, grid)
+    psi, ok_h = interpolate(sig.heading, grid)
+    if sig.velocity is not None:
+        vel, ok_v = interpolate(sig.velocity, grid)
     else:
-        xy = np.array([[m.point.x, m.point.y] for m in data.msgs]).reshape(-1, 2)
-    return _signal(path, data, xy, np.inf, "obstacle position")
+        vel = np.gradient(pos, dt, axis=0) if grid.size > 1 else np.zeros_like(pos)
+        # np.gradient: central differences inside, one-sided at the ends.
+        before = np.concatenate([ok_p[:1], ok_p[:-1]])
+        after = np.concatenate([ok_p[1:], ok_p[-1:]])
+        ok_v = ok_p & before & after
+    rate, ok_r = interpolate(sig.yaw_rate, grid)
+    cmd, ok_c = hold(sig.commands, grid)
+    if sig.actuators is not None:
+        act, ok_a = interpolate(sig.actuators, grid)
+    else:
+        act = first_order_lag(cmd, cmd[0], dt, lags)
+        ok_a = ok_c
+    checks = (
+        (sig.position, ok_p & ok_v if sig.velocity is None else ok_p),
+        (sig.heading, ok_h & ok_r),
+        (sig.velocity, ok_v),
+        (sig.commands, ok_c),
+        (sig.actuators, ok_a),
+    )
+    valid = ok_p & ok_h & ok_v & ok_r & ok_c & ok_a
+    return _OnGrid(pos, psi, vel, rate, cmd, act, valid, checks)
 
 
-def _obstacle_from_scans(scans, position: Signal, heading: Signal, t_a: int, t_b: int):
-    """World position [2] of the pole from the scans in [t_a, t_b]: the densest 5 m cell of all
-    returns (LiDAR preferred, radar otherwise), averaged over the returns within 5 m of it."""
+def _topic_checks(pairs) -> list[tuple[Signal, np.ndarray]]:
+    """(signal, ok) per topic, signals of the same topic merged (their validity and-ed)."""
+    merged: dict[str, tuple[Signal, np.ndarray]] = {}
+    for sig, ok in pairs:
+        if sig is None:
+            continue
+        if sig.topic in merged:
+            first, prev = merged[sig.topic]
+            merged[sig.topic] = (first, prev & ok)
+        else:
+            merged[sig.topic] = (sig, ok)
+    return list(merged.values())
+
+
+def _episode_obstacle(path, obstacle_sig, sensors, t_a, t_b, track, tm: TopicMap):
+    """(obstacle xy [2], metadata, estimate or None) of the episode [t_a, t_b] with the valid
+    track (t, xy, ψ); a :class:`BagError` to skip the episode with (no object qualifies, or an
+    ambiguous one with ``obstacle_search.ambiguous: skip``)."""
+    if obstacle_sig is not None:
+        sel = (obstacle_sig.t >= t_a) & (obstacle_sig.t <= t_b)
+        vals = obstacle_sig.v[sel] if sel.any() else obstacle_sig.v
+        xy = vals.mean(axis=0)
+        meta = {
+            "obstacle_source": "topic",
+            "obstacle_spread_m": float(np.sqrt(np.mean(np.sum((vals - xy) ** 2, axis=1)))),
+            "obstacle_scans": len(vals),
+            "obstacle_ambiguous": False,
+        }
+        return xy, meta, None
+    estimate = _estimate_obstacle(sensors, t_a, t_b, *track, tm)
+    if estimate is None:
+        raise BagError(
+            path,
+            "no obstacle position (no obstacle topic and no range-sensor returns)",
+            tm.obstacle.topic if tm.obstacle is not None else None,
+            t_a,
+        )
+    search = tm.obstacle_search
+    problem = None
+    if estimate.xy is None:
+        problem = (
+            f"episode: no object seen in {search.min_scans}+ {estimate.sensor} scans that the "
+            f"boat headed for (aim <= {search.aim_deg:g} deg) and passed within {search.gate:g} "
+            f"m; candidates: {estimate.describe()}"
+        )
+    elif estimate.ambiguous and search.ambiguous == "skip":
+        problem = (
+            f"episode: ambiguous obstacle, {estimate.qualified} objects qualify "
+            f"({estimate.describe()}); set obstacle_search.ambiguous: keep to keep such "
+            "episodes flagged"
+        )
+    if problem is not None:
+        return BagError(
+            path,
+            f"t={t_a * 1e-9:.3f}s..{t_b * 1e-9:.3f}s: {problem} (segment skipped)",
+            tm.roles()[estimate.sensor].topic,
+            t_a,
+        )
+    best = estimate.chosen
+    meta = {
+        "obstacle_source": estimate.sensor,
+        "obstacle_spread_m": best.object.spread,
+        "obstacle_scans": best.object.scans,
+        "obstacle_ambiguous": estimate.ambiguous,
+        "obstacle_candidates": [
+            {
+                "xy": c.object.xy.tolist(),
+                "scans": c.object.scans,
+                "spread_m": c.object.spread,
+                "closest_m": c.closest,
+                "aim_deg": c.aim_deg if np.isfinite(c.aim_deg) else None,
+            }
+            for c in estimate.candidates[:4]
+        ],
+    }
+    return estimate.xy, meta, estimate
+
+
+def _known_objects(obstacle_sig, sensors, tm: TopicMap) -> np.ndarray | None:
+    """[M, 2] positions of the obstacles of a whole bag for rule-based segmentation: the obstacle
+    topic's (clustered), else the static objects in the LiDAR's returns, else the radar's; None
+    when there is nothing to find them from."""
+    search = tm.obstacle_search
+    if obstacle_sig is not None:
+        ids = np.arange(len(obstacle_sig.v))
+        found = find_objects(obstacle_sig.v, ids, search.cluster, 1)
+        return np.array([o.xy for o in found]).reshape(-1, 2)
+    result = None
     for role in ("lidar", "radar"):
-        entry = scans.get(role)
+        entry = sensors.get(role)
         if entry is None:
             continue
-        sig, pts = entry
-        sel = np.flatnonzero((sig.t >= t_a) & (sig.t <= t_b))
-        if sel.size == 0:
+        pts = [(i, w) for i, w in enumerate(entry.world) if w is not None and len(w)]
+        if not pts:
+            result = np.zeros((0, 2)) if result is None else result
             continue
-        pose, ok_p = interpolate(position, sig.t[sel])
-        psi, ok_h = interpolate(heading, sig.t[sel])
-        world = []
-        for j, i in enumerate(sel):
-            if not (ok_p[j] and ok_h[j]) or len(pts[i]) == 0:
-                continue
-            c, s = np.cos(psi[j, 0]), np.sin(psi[j, 0])
-            p = pts[i]
-            world.append(
-                pose[j] + np.stack([c * p[:, 0] - s * p[:, 1], s * p[:, 0] + c * p[:, 1]], 1)
-            )
-        if not world:
+        ids = np.concatenate([np.full(len(w), i) for i, w in pts])
+        found = find_objects(
+            np.concatenate([w for _, w in pts]), ids, search.cluster, search.min_scans
+        )
+        if found:
+            return np.array([o.xy for o in found])
+        result = np.zeros((0, 2))
+    return result
+
+
+def _estimate_obstacle(sensors, t_a, t_b, track_t, track, track_psi, tm: TopicMap):
+    """The obstacle from the LiDAR when it finds one, else the radar; None without returns."""
+    result = None
+    for role in ("lidar", "radar"):
+        entry = sensors.get(role)
+        if entry is None:
             continue
-        w = np.concatenate(world)
-        cells, counts = np.unique(np.floor(w / 5.0).astype(np.int64), axis=0, return_counts=True)
-        centre = (cells[np.argmax(counts)] + 0.5) * 5.0
-        near = np.linalg.norm(w - centre, axis=1) < 5.0
-        return w[near].mean(axis=0)
-    return None
+        sel = np.flatnonzero((entry.scans.t >= t_a) & (entry.scans.t <= t_b))
+        world = [entry.world[i] for i in sel]
+        est = estimate_obstacle(world, track_t, track, track_psi, tm.obstacle_search, role)
+        if est.xy is not None:
+            return est
+        result = result or est
+    return result
 
 
 def _fill_invalid(X: np.ndarray, valid: np.ndarray) -> np.ndarray:
@@ -785,47 +579,58 @@ def _fill_invalid(X: np.ndarray, valid: np.ndarray) -> np.ndarray:
     return np.nan_to_num(X[src])
 
 
-def _observations(path, grid, X, scans, cfg: IngestConfig, ep_warnings) -> tuple[np.ndarray, dict]:
+def _observations(
+    path, grid, X, valid, sensors, cfg: IngestConfig, ep_warnings
+) -> tuple[np.ndarray, dict]:
     """O: [K, dO] in the hull env's layout (:func:`diffgcl.envs.hull.observation`):
     LiDAR beams, radar beams, sin ψ, cos ψ, u, v, r.
 
-    Each scan's points (hull frame) are reduced with
-    :func:`~diffgcl.sim.sensors.ranges_from_points`; LiDAR points fill the LiDAR beams only and
-    radar detections the radar beams only. A step without a recent scan (or a bag without the
-    sensor) reads the beams' maximum range, i.e. "no return", and is reported as a warning.
+    At step k the latest scan (at most ``max_gap`` old) is taken from the local frame into the
+    hull frame of step k (its own hull-frame points where a pose is missing) and reduced to the
+    beams: LiDAR points fill the LiDAR beams only (:func:`~diffgcl.sim.sensors.ranges_from_points`),
+    radar returns the radar beams only (:func:`~diffgcl.data.scans.radar_sector_ranges`). A step
+    without a recent scan (or a bag without the sensor) reads the beams' maximum range, i.e.
+    "no return", and is reported as a warning naming the topic and the span.
     """
-    from diffgcl.sim import hull, sensors
+    from diffgcl.sim import hull
+    from diffgcl.sim import sensors as sim_sensors
 
-    layout = cfg.sensors if cfg.sensors is not None else sensors.SensorLayout()
+    layout = cfg.sensors if cfg.sensors is not None else sim_sensors.SensorLayout()
     if not cfg.observations:
-        return np.zeros((grid.size, 0)), {"lidar": scans.get("lidar") is not None}
+        return np.zeros((grid.size, 0)), {"lidar": sensors.get("lidar") is not None}
+    lidar_only = dataclasses.replace(layout, radar_beams=0)
     ranges = np.broadcast_to(layout.max_ranges, (grid.size, layout.num_beams)).copy()
     fans = {
         "lidar": slice(0, layout.lidar_beams),
         "radar": slice(layout.lidar_beams, layout.num_beams),
     }
+    pose = X[:, hull.IX_PX : hull.IX_PY + 1]
     meta: dict[str, Any] = {}
     for role, fan in fans.items():
-        entry = scans.get(role)
+        entry = sensors.get(role)
         meta[role] = entry is not None
         if entry is None:
             meta[f"{role}_valid_fraction"] = 0.0
             continue
-        sig, pts = entry
-        idx, ok = hold(sig, grid)
-        cache: dict[int, np.ndarray] = {}
+        scans = entry.scans
+        index = Signal(
+            scans.topic, scans.t, np.arange(scans.t.size, dtype=float)[:, None], scans.max_gap
+        )
+        idx, ok = hold(index, grid)
         for k in np.flatnonzero(ok):
             i = int(idx[k, 0])
-            if i not in cache:
-                cache[i] = sensors.ranges_from_points(pts[i], layout)[fan]
-            ranges[k, fan] = cache[i]
+            world = entry.kept_world[i]
+            if world is not None and valid[k]:
+                pts = to_hull(world, pose[k], X[k, hull.IX_PSI])
+            else:
+                pts = entry.kept[i]
+            if role == "lidar":
+                ranges[k, fan] = sim_sensors.ranges_from_points(pts, lidar_only)
+            else:
+                ranges[k, fan] = radar_sector_ranges(pts, layout)
         meta[f"{role}_valid_fraction"] = float(ok.mean())
-        if not ok.all():
-            _warn(
-                ep_warnings,
-                f"{path}: topic {sig.topic}: {int((~ok).sum())} steps without a recent "
-                f"{role} scan (no-return ranges used)",
-            )
+        for text in _span_warnings(path, grid, [(index, ok)], "read no return"):
+            _warn(ep_warnings, text)
     psi = X[:, hull.IX_PSI]
     c, s = np.cos(psi), np.sin(psi)
     u = c * X[:, hull.IX_VX] + s * X[:, hull.IX_VY]
@@ -887,8 +692,11 @@ def convert(
     topic_map: TopicMap | None = None,
     config: IngestConfig | None = None,
     progress: Callable[[Sequence], Any] | None = None,
+    overwrite: bool = False,
 ) -> DemoSet:
-    """Ingest ``paths`` and save the dataset to ``out`` (atomically: all or nothing)."""
+    """Ingest ``paths`` and save the dataset to ``out`` (all or nothing; the output folder
+    rules of :func:`diffgcl.io.write_folder` are checked before any bag is read)."""
+    check_output_folder(out, DEMO_FOLDER, overwrite)
     demos = ingest_bags(paths, topic_map, config, progress)
-    demos.save(out)
+    demos.save(out, overwrite)
     return demos

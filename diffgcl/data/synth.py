@@ -38,17 +38,40 @@ topic                      type                         rate      noise (1 σ)
 **Files**: one bag per episode (``set1/ep000.bag`` ...), the way a boat crew records one run at a
 time; each bag has episode markers 2.5 s after its first and 1 s before its last message, so the
 bags also work with ``bag_per="set"`` (one bag per set, episodes one after another, 20 s apart).
-``manifest.json`` lists the episodes with their true metadata and the true hull parameters.
-The output folder is written under a temporary name and renamed when complete.
+``manifest.json`` lists the episodes with their true metadata (pole position and radius, swerve
+side, times) and the true hull parameters. The output folder follows
+:func:`diffgcl.io.write_folder` (kind :data:`SYNTH_FOLDER`).
+
+**Other boats** (issue 15; :func:`other_boat_config`): ``layout="other"`` records the same
+simulated runs the way another vessel does —
+
+=========================  ===========================  ========  =============================
+topic                      type                         rate      what differs
+=========================  ===========================  ========  =============================
+/gnss/fix                  sensor_msgs/NavSatFix        5 Hz      stamped 0.2 s after the fix
+/odom                      nav_msgs/Odometry            20 Hz     NED pose, FRD twist
+/imu/data                  sensor_msgs/Imu              50 Hz     ENU, as Odin's
+/jet/cmd                   jet_msgs/JetCmd              on change % of 12 kN, deg to starboard
+/scan                      sensor_msgs/LaserScan        10 Hz     set 2 only
+/radar/points              sensor_msgs/PointCloud2      0.4 Hz    x, y, z, intensity; sea clutter
+/events                    std_msgs/String              markers   "start 1" / "end 1" (optional)
+=========================  ===========================  ========  =============================
+
+(no jet feedback, no obstacle topic) — and, as options of any layout: ``markers`` (key=value,
+id or none), ``obstacle_topic``, ``visible_poles="set"`` (every pole of a set stands in the
+water, the range sensors see all of them; poles kept apart and off the other episodes' courses),
+``repositioning`` (with one bag per set, the drive from each run's end to the next start is
+recorded: a kinematic leg, :func:`repositioning_leg`) and ``stamp_glitch`` (a topic's header
+stamps jump back for a span). The Odin layout with the default options is unchanged, byte for
+byte.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import json
 import os
-import shutil
-import tempfile
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -57,8 +80,9 @@ from typing import Any
 import numpy as np
 
 from diffgcl.data.bags import FORMATS, BagWriter, bag_name
-from diffgcl.data.ingest import local_to_latlon
+from diffgcl.data.signals import local_to_latlon
 from diffgcl.data.topics import default_topic_map
+from diffgcl.io import FolderKind, check_output_folder, write_folder
 
 NS = 1_000_000_000
 
@@ -122,6 +146,68 @@ class SensorModel:
     latency_s: float = 0.02
     jitter_s: float = 0.01
     lidar_mount: tuple[float, float, float] = (2.0, 0.0, 0.0)
+    # Header stamps of the GNSS fix this much after the fix was taken (a receiver that stamps on
+    # output); the topic map's position.latency undoes it.
+    gps_latency_s: float = 0.0
+    # Radar: position on the hull [x, y, yaw]; sea clutter near the boat: Poisson(sea_clutter)
+    # returns per sweep at 2 m + Exponential(sea_clutter_range) m, uniform bearing, intensity
+    # uniform in sea_clutter_intensity (the pole's returns: radar_pole_intensity).
+    radar_mount: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    sea_clutter: float = 0.0
+    sea_clutter_range: float = 6.0
+    sea_clutter_intensity: tuple[float, float] = (0.02, 0.6)
+    radar_pole_intensity: tuple[float, float] = (0.6, 1.0)
+
+
+# The "other boat" of issue 15: GNSS fix stamped 0.2 s late, radar point cloud every 2.5 s
+# (0.4 Hz) from 1 m ahead of the centre, with sea clutter (about 75 % of the 16 beams of the
+# default layout would read a clutter return under 11 m without a filter).
+OTHER_BOAT_SENSORS = SensorModel(
+    radar_period_s=2.5,
+    gps_latency_s=0.2,
+    radar_mount=(1.0, 0.0, 0.0),
+    sea_clutter=60.0,
+    radar_pole_intensity=(0.5, 1.0),
+)
+
+# Full thrust (N) that the "other" layout's throttle percentages refer to (HullParams.max_thrust).
+OTHER_BOAT_FULL_THRUST = 12000.0
+
+# Topics (and message types) of the two layouts; see the module docstring.
+LAYOUT_TOPICS: dict[str, dict[str, str]] = {
+    "odin": {
+        "odom": "/odin/nav/odom",
+        "imu": "/odin/imu",
+        "gps": "/odin/gps/fix",
+        "jets": "/odin/jets/state",
+        "cmd": "/odin/operator/cmd",
+        "lidar": "/odin/lidar/scan",
+        "radar": "/odin/radar/sector",
+        "obstacle": "/odin/obstacle/fix",
+        "markers": "/odin/episode",
+    },
+    "other": {
+        "odom": "/odom",
+        "imu": "/imu/data",
+        "gps": "/gnss/fix",
+        "cmd": "/jet/cmd",
+        "lidar": "/scan",
+        "radar": "/radar/points",
+        "obstacle": "/pole/fix",
+        "markers": "/events",
+    },
+}
+
+
+@dataclass(frozen=True)
+class StampGlitch:
+    """Header stamps of ``topic`` jump back by ``jump_s`` for messages sampled in
+    [at_s, at_s + duration_s) after the start of each bag's first episode (a clock glitch)."""
+
+    topic: str
+    at_s: float = 20.0
+    duration_s: float = 10.0
+    jump_s: float = 3.0
 
 
 @dataclass(frozen=True)
@@ -131,6 +217,14 @@ class SynthConfig:
     episodes: per set (the seed: 19 and 47); lidar: per set; fmt: ``ros1`` | ``ros2-sqlite3`` |
     ``ros2-mcap``; bag_per: ``episode`` | ``set``; approach_m: range of start distances to the
     pole (m); max_duration_s: cap on an episode's length.
+
+    Other boats (see the module docstring): layout: ``odin`` | ``other`` (topics, types, frames,
+    units); markers: ``keyvalue`` ("start set=1 episode=0 pole=green" / "end"), ``id``
+    ("start 1" / "end 1") or ``none``; obstacle_topic: publish the surveyed pole; visible_poles:
+    ``episode`` (the range sensors see only the episode's pole) or ``set`` (every pole of the set
+    stands in the water at once, at least ``min_pole_separation`` m apart); repositioning (with
+    ``bag_per="set"``): the boat drives from each episode's end to the next start, recorded,
+    instead of a 20 s silence; stamp_glitch: a span of backwards header stamps.
     """
 
     episodes: tuple[int, ...] = (19, 47)
@@ -144,6 +238,33 @@ class SynthConfig:
     start_ns: int = DEFAULT_START_NS
     sensors: SensorModel = field(default_factory=SensorModel)
     datum: tuple[float, float] | None = None
+    layout: str = "odin"
+    markers: str = "keyvalue"
+    obstacle_topic: bool = True
+    visible_poles: str = "episode"
+    min_pole_separation: float = 100.0
+    repositioning: bool = False
+    stamp_glitch: StampGlitch | None = None
+
+
+def other_boat_config(**changes: Any) -> SynthConfig:
+    """The "other boat" bags of issue 15: layout ``other`` (GNSS fix with latency, ENU IMU, NED
+    odometry, LaserScan, radar PointCloud2 at 0.4 Hz with sea clutter and intensities, on-change
+    percent/degree jet commands), one bag per set with the repositioning legs recorded, every
+    pole of a set in the water at once, no markers and no obstacle topic. ``changes`` override
+    any field (e.g. ``markers="id"``)."""
+    base = {
+        "episodes": (3, 3),
+        "lidar": (False, True),
+        "bag_per": "set",
+        "layout": "other",
+        "markers": "none",
+        "obstacle_topic": False,
+        "visible_poles": "set",
+        "repositioning": True,
+        "sensors": OTHER_BOAT_SENSORS,
+    }
+    return SynthConfig(**{**base, **changes})
 
 
 @dataclass(frozen=True)
@@ -396,8 +517,9 @@ def _quat(yaw) -> dict[str, float]:
     return {"x": 0.0, "y": 0.0, "z": float(np.sin(yaw / 2)), "w": float(np.cos(yaw / 2))}
 
 
-def _lidar_ranges(rng, state, pole, radius, sm: SensorModel) -> np.ndarray:
-    """LaserScan ranges [beams] (inf = no return) of a 360° scan from the mast."""
+def _lidar_ranges(rng, state, poles, sm: SensorModel) -> np.ndarray:
+    """LaserScan ranges [beams] (inf = no return) of a 360° scan from the mast; poles: visible
+    ((x, y), radius) pairs."""
     from diffgcl.sim import hull
 
     psi = state[hull.IX_PSI]
@@ -407,60 +529,126 @@ def _lidar_ranges(rng, state, pole, radius, sm: SensorModel) -> np.ndarray:
     angles = -np.pi + np.arange(sm.lidar_beams) * (2 * np.pi / sm.lidar_beams)
     world = psi + myaw + angles
     d = np.stack([np.cos(world), np.sin(world)], axis=1)
-    rel = np.asarray(pole) - origin
-    proj = d @ rel
-    disc = proj**2 - (rel @ rel - radius**2)
-    hit = (disc >= 0) & (proj > 0)
-    r = np.where(hit, proj - np.sqrt(np.maximum(disc, 0.0)), np.inf)
+    r = np.full(sm.lidar_beams, np.inf)
+    for pole, radius in poles:
+        rel = np.asarray(pole) - origin
+        proj = d @ rel
+        disc = proj**2 - (rel @ rel - radius**2)
+        hit = (disc >= 0) & (proj > 0)
+        r = np.minimum(r, np.where(hit, proj - np.sqrt(np.maximum(disc, 0.0)), np.inf))
     r = r + rng.normal(0.0, sm.lidar_noise, r.shape)
     r[(r > sm.lidar_range) | (rng.uniform(size=r.shape) < sm.lidar_dropout)] = np.inf
     return r.astype(np.float32)
 
 
-def _radar_detections(rng, state, pole, sm: SensorModel):
-    """(bearings, ranges, intensities) of one sweep: the pole (prob. Pd) plus clutter."""
+def _radar_detections(rng, state, poles, sm: SensorModel):
+    """(bearings, ranges, intensities) of one sweep in the radar frame: each visible pole
+    (prob. Pd each), far clutter, and sea clutter near the boat."""
     from diffgcl.sim import hull
 
-    rel = np.asarray(pole) - state[hull.IX_PX : hull.IX_PY + 1]
-    rng_true = float(np.hypot(*rel))
-    brg_true = float(_wrap(np.arctan2(rel[1], rel[0]) - state[hull.IX_PSI]))
+    psi = state[hull.IX_PSI]
+    c, s = np.cos(psi), np.sin(psi)
+    mx, my, myaw = sm.radar_mount
+    origin = state[hull.IX_PX : hull.IX_PY + 1] + np.array([c * mx - s * my, s * mx + c * my])
     bearings, ranges, power = [], [], []
-    if rng_true < sm.radar_range and rng.uniform() < sm.radar_pd:
-        bearings.append(brg_true + rng.normal(0.0, sm.radar_bearing_noise))
-        ranges.append(max(rng_true + rng.normal(0.0, sm.radar_range_noise), 1.0))
-        power.append(rng.uniform(0.6, 1.0))
+    for pole, _ in poles:
+        rel = np.asarray(pole) - origin
+        rng_true = float(np.hypot(*rel))
+        brg_true = float(_wrap(np.arctan2(rel[1], rel[0]) - psi - myaw))
+        if rng_true < sm.radar_range and rng.uniform() < sm.radar_pd:
+            bearings.append(brg_true + rng.normal(0.0, sm.radar_bearing_noise))
+            ranges.append(max(rng_true + rng.normal(0.0, sm.radar_range_noise), 1.0))
+            power.append(rng.uniform(*sm.radar_pole_intensity))
     for _ in range(rng.poisson(sm.radar_clutter)):
         bearings.append(rng.uniform(-np.pi, np.pi))
         ranges.append(rng.uniform(20.0, 0.6 * sm.radar_range))
         power.append(rng.uniform(0.05, 0.5))
+    if sm.sea_clutter > 0:
+        n = rng.poisson(sm.sea_clutter)
+        bearings.extend(rng.uniform(-np.pi, np.pi, n))
+        ranges.extend(2.0 + rng.exponential(sm.sea_clutter_range, n))
+        power.extend(rng.uniform(*sm.sea_clutter_intensity, n))
     f32 = lambda v: np.asarray(v, np.float32)
     return f32(bearings), f32(ranges), f32(power)
 
 
+def _pointcloud2(w: BagWriter, h, bearings, ranges, intensities):
+    """A sensor_msgs/PointCloud2 with float32 x, y, z, intensity (16-byte points)."""
+    n = len(ranges)
+    pts = np.zeros((n, 4), np.float32)
+    pts[:, 0] = ranges * np.cos(bearings)
+    pts[:, 1] = ranges * np.sin(bearings)
+    pts[:, 3] = intensities
+    fields = [
+        w.make("sensor_msgs/msg/PointField", name=name, offset=4 * k, datatype=7, count=1)
+        for k, name in enumerate(("x", "y", "z", "intensity"))
+    ]
+    return w.make(
+        "sensor_msgs/msg/PointCloud2",
+        header=h,
+        height=1,
+        width=n,
+        fields=fields,
+        is_bigendian=False,
+        point_step=16,
+        row_step=16 * n,
+        data=np.frombuffer(pts.astype("<f4").tobytes(), np.uint8),
+        is_dense=True,
+    )
+
+
+@dataclass(frozen=True)
+class Recording:
+    """One stretch of a bag's timeline as the sensors record it (an episode or a repositioning
+    leg): t: [K+1] int64 ns, X: [K+1, dX], U: [K, dU]; poles: the visible ((x, y), radius);
+    obstacle: the surveyed pole published on the obstacle topic (None: none); markers: (ns,
+    text) episode markers."""
+
+    t: np.ndarray
+    X: np.ndarray
+    U: np.ndarray
+    poles: tuple[tuple[tuple[float, float], float], ...]
+    obstacle: tuple[float, float] | None
+    markers: tuple[tuple[int, str], ...]
+
+
 def episode_messages(
     w: BagWriter,
-    truth: EpisodeTruth,
+    rec: Recording,
     lidar: bool,
     sm: SensorModel,
     datum: tuple[float, float],
     rng: np.random.Generator,
     taus: tuple[float, float],
-    set_index: int,
+    layout: str = "odin",
+    glitch: tuple[str, int, int, int] | None = None,
 ) -> list[tuple[int, str, str, Any]]:
-    """All messages of one episode as (bag ns, topic, type, message), unsorted."""
+    """All messages of one recording as (bag ns, topic, type, message), unsorted.
+
+    glitch: (topic, first ns, end ns, jump ns): header stamps of ``topic`` sampled in
+    [first, end) are ``jump`` ns early.
+    """
     from diffgcl.sim import hull
 
+    topics = LAYOUT_TOPICS[layout]
+    ned_odom = layout == "other"
     dt = hull_dt()
-    X, U, t_ns = truth.X, truth.U, truth.t
-    p = truth.profile
+    X, U, t_ns = rec.X, rec.U, rec.t
     t0_ns = int(t_ns[0])
     dur = U.shape[0] * dt
     msgs: list[tuple[int, str, str, Any]] = []
 
-    def emit(topic, msgtype, stamp_s, build):
+    def emit(role, msgtype, stamp_s, build, lag_s: float = 0.0):
+        topic = topics[role]
         stamp = t0_ns + int(round(stamp_s * NS))
         lag = sm.latency_s + abs(rng.normal(0.0, sm.jitter_s))
-        msgs.append((stamp + int(lag * NS), topic, msgtype, build(w.header(stamp, "odin"))))
+        published = stamp + int(round(lag_s * NS))
+        header_stamp = published
+        if glitch is not None and topic == glitch[0] and glitch[1] <= stamp < glitch[2]:
+            header_stamp -= glitch[3]
+        msgs.append(
+            (published + int(lag * NS), topic, msgtype, build(w.header(header_stamp, "odin")))
+        )
 
     def states(hz):
         s = _sample_times(rng, 0.0, dur, hz)
@@ -475,27 +663,23 @@ def episode_messages(
 
         def odom(h, x=x, u_b=u_b, v_b=v_b, noise=noise):
             yaw = x[hull.IX_PSI] + sm.odom_yaw * noise[2]
+            px = float(x[hull.IX_PX] + sm.odom_pos * noise[0])
+            py = float(x[hull.IX_PY] + sm.odom_pos * noise[1])
+            vx, vy = float(u_b + sm.odom_vel * noise[3]), float(v_b + sm.odom_vel * noise[4])
+            r = float(x[hull.IX_R])
+            if ned_odom:  # x north, y east, z down; body x forward, y starboard
+                px, py, yaw, vy, r = py, px, np.pi / 2 - yaw, -vy, -r
             pose = w.make(
                 "geometry_msgs/msg/Pose",
-                position=w.make(
-                    "geometry_msgs/msg/Point",
-                    x=float(x[hull.IX_PX] + sm.odom_pos * noise[0]),
-                    y=float(x[hull.IX_PY] + sm.odom_pos * noise[1]),
-                    z=0.0,
-                ),
+                position=w.make("geometry_msgs/msg/Point", x=px, y=py, z=0.0),
                 orientation=w.make("geometry_msgs/msg/Quaternion", **_quat(yaw)),
             )
             twist = w.make(
                 "geometry_msgs/msg/Twist",
-                linear=w.make(
-                    "geometry_msgs/msg/Vector3",
-                    x=float(u_b + sm.odom_vel * noise[3]),
-                    y=float(v_b + sm.odom_vel * noise[4]),
-                    z=0.0,
-                ),
-                angular=w.make("geometry_msgs/msg/Vector3", x=0.0, y=0.0, z=float(x[hull.IX_R])),
+                linear=w.make("geometry_msgs/msg/Vector3", x=vx, y=vy, z=0.0),
+                angular=w.make("geometry_msgs/msg/Vector3", x=0.0, y=0.0, z=r),
             )
-            h.frame_id = "odin_local"
+            h.frame_id = "odin_local" if not ned_odom else "ned"
             return w.make(
                 "nav_msgs/msg/Odometry",
                 header=h,
@@ -508,7 +692,7 @@ def episode_messages(
                 ),
             )
 
-        emit("/odin/nav/odom", "nav_msgs/msg/Odometry", si, odom)
+        emit("odom", "nav_msgs/msg/Odometry", si, odom)
 
     s, st = states(sm.imu_hz)
     for si, x in zip(s, st, strict=True):
@@ -534,7 +718,7 @@ def episode_messages(
                 linear_acceleration_covariance=np.zeros(9),
             )
 
-        emit("/odin/imu", "sensor_msgs/msg/Imu", si, imu)
+        emit("imu", "sensor_msgs/msg/Imu", si, imu)
 
     def fix_msg(h, latlon):
         return w.make(
@@ -553,50 +737,66 @@ def episode_messages(
         st[:, hull.IX_PX : hull.IX_PY + 1] + rng.normal(0.0, sm.gps_pos, (len(s), 2)), datum
     )
     for si, lat_lon in zip(s, ll, strict=True):
-        emit("/odin/gps/fix", "sensor_msgs/msg/NavSatFix", si, lambda h, v=lat_lon: fix_msg(h, v))
-
-    s = _sample_times(rng, 0.0, dur, sm.obstacle_hz)
-    ll = local_to_latlon(
-        np.asarray(p.pole_xy) + rng.normal(0.0, sm.obstacle_pos, (len(s), 2)), datum
-    )
-    for si, lat_lon in zip(s, ll, strict=True):
         emit(
-            "/odin/obstacle/fix",
+            "gps",
             "sensor_msgs/msg/NavSatFix",
             si,
             lambda h, v=lat_lon: fix_msg(h, v),
+            lag_s=sm.gps_latency_s,
         )
 
-    s, st = states(sm.jets_hz)
-    for si, x in zip(s, st, strict=True):
-        thrust = float(x[hull.IX_THRUST] + rng.normal(0.0, sm.jets_thrust))
-        nozzle = float(x[hull.IX_NOZZLE] + rng.normal(0.0, sm.jets_nozzle))
-        emit(
-            "/odin/jets/state",
-            "odin_msgs/msg/JetState",
-            si,
-            lambda h, a=thrust, b=nozzle: w.make(
-                "odin_msgs/msg/JetState", header=h, thrust=a, nozzle=b
-            ),
+    if rec.obstacle is not None:
+        s = _sample_times(rng, 0.0, dur, sm.obstacle_hz)
+        ll = local_to_latlon(
+            np.asarray(rec.obstacle) + rng.normal(0.0, sm.obstacle_pos, (len(s), 2)), datum
         )
+        for si, lat_lon in zip(s, ll, strict=True):
+            emit("obstacle", "sensor_msgs/msg/NavSatFix", si, lambda h, v=lat_lon: fix_msg(h, v))
+
+    if "jets" in topics:
+        s, st = states(sm.jets_hz)
+        for si, x in zip(s, st, strict=True):
+            thrust = float(x[hull.IX_THRUST] + rng.normal(0.0, sm.jets_thrust))
+            nozzle = float(x[hull.IX_NOZZLE] + rng.normal(0.0, sm.jets_nozzle))
+            emit(
+                "jets",
+                "odin_msgs/msg/JetState",
+                si,
+                lambda h, a=thrust, b=nozzle: w.make(
+                    "odin_msgs/msg/JetState", header=h, thrust=a, nozzle=b
+                ),
+            )
 
     # Commands: published when they change (and once at the start).
     changed = np.ones(U.shape[0], bool)
     changed[1:] = np.any(U[1:] != U[:-1], axis=1)
     for k in np.flatnonzero(changed):
-        emit(
-            "/odin/operator/cmd",
-            "odin_msgs/msg/JetCommand",
-            k * dt,
-            lambda h, c=U[k]: w.make(
-                "odin_msgs/msg/JetCommand", header=h, thrust=float(c[0]), nozzle=float(c[1])
-            ),
-        )
+        if layout == "odin":
+            emit(
+                "cmd",
+                "odin_msgs/msg/JetCommand",
+                k * dt,
+                lambda h, c=U[k]: w.make(
+                    "odin_msgs/msg/JetCommand", header=h, thrust=float(c[0]), nozzle=float(c[1])
+                ),
+            )
+        else:  # percent of full thrust; degrees, positive to starboard
+            emit(
+                "cmd",
+                "jet_msgs/msg/JetCmd",
+                k * dt,
+                lambda h, c=U[k]: w.make(
+                    "jet_msgs/msg/JetCmd",
+                    header=h,
+                    throttle=float(c[0]) / OTHER_BOAT_FULL_THRUST * 100.0,
+                    steering=-float(np.rad2deg(c[1])),
+                ),
+            )
 
     if lidar:
         s, st = states(sm.lidar_hz)
         for si, x in zip(s, st, strict=True):
-            ranges = _lidar_ranges(rng, x, p.pole_xy, p.pole_radius, sm)
+            ranges = _lidar_ranges(rng, x, rec.poles, sm)
 
             def scan(h, r=ranges):
                 h.frame_id = "lidar"
@@ -614,29 +814,35 @@ def episode_messages(
                     intensities=np.zeros(0, np.float32),
                 )
 
-            emit("/odin/lidar/scan", "sensor_msgs/msg/LaserScan", si, scan)
+            emit("lidar", "sensor_msgs/msg/LaserScan", si, scan)
 
     s, st = states(1.0 / sm.radar_period_s)
     for si, x in zip(s, st, strict=True):
-        b, r, pw = _radar_detections(rng, x, p.pole_xy, sm)
-        emit(
-            "/odin/radar/sector",
-            "odin_msgs/msg/RadarSector",
-            si,
-            lambda h, b=b, r=r, pw=pw: w.make(
+        b, r, pw = _radar_detections(rng, x, rec.poles, sm)
+        if layout == "odin":
+            emit(
+                "radar",
                 "odin_msgs/msg/RadarSector",
-                header=h,
-                range_max=float(sm.radar_range),
-                bearings=b,
-                ranges=r,
-                intensities=pw,
-            ),
-        )
+                si,
+                lambda h, b=b, r=r, pw=pw: w.make(
+                    "odin_msgs/msg/RadarSector",
+                    header=h,
+                    range_max=float(sm.radar_range),
+                    bearings=b,
+                    ranges=r,
+                    intensities=pw,
+                ),
+            )
+        else:
+            emit(
+                "radar",
+                "sensor_msgs/msg/PointCloud2",
+                si,
+                lambda h, b=b, r=r, pw=pw: _pointcloud2(w, h, b, r, pw),
+            )
 
-    start_ns, end_ns = truth.marker_ns
-    text = f"start set={set_index} episode={truth.index} pole={p.pole_colour}"
-    for stamp, body in ((start_ns, text), (end_ns, "end")):
-        msgs.append((stamp, "/odin/episode", "std_msgs/msg/String", _string(w, body)))
+    for stamp, body in rec.markers:
+        msgs.append((stamp, topics["markers"], "std_msgs/msg/String", _string(w, body)))
     return msgs
 
 
@@ -657,12 +863,151 @@ def write_messages(path: Path, fmt: str, batches: Sequence[list]) -> None:
 # --------------------------------------------------------------------------------------------
 
 
+def _owned_bags(folder: Path) -> frozenset[str] | None:
+    """What an earlier :func:`synthesize` wrote into ``folder`` (None: not a synthetic set)."""
+    try:
+        manifest = json.loads((folder / "manifest.json").read_text())
+    except (OSError, ValueError):
+        return None
+    if not isinstance(manifest, dict) or manifest.get("format") != "diffgcl-synth/1":
+        return None
+    return frozenset(["manifest.json", *(e["bag"] for e in manifest.get("episodes", ()))])
+
+
+SYNTH_FOLDER = FolderKind("synthetic bag set", _owned_bags, marker="manifest.json")
+
+
+def _hermite(p0, p1, d0, d1, n: int = 4001) -> np.ndarray:
+    """[n, 2] points of the cubic Hermite curve from p0 to p1 with end tangents d0, d1."""
+    u = np.linspace(0.0, 1.0, n)[:, None]
+    return (
+        (2 * u**3 - 3 * u**2 + 1) * p0
+        + (u**3 - 2 * u**2 + u) * d0
+        + (-2 * u**3 + 3 * u**2) * p1
+        + (u**3 - u**2) * d1
+    )
+
+
+# Tangent lengths tried for a leg (times the chord, at least LEG_MIN_TANGENT m; start and end
+# tangents in every combination, shortest first): the boat turns soon after a run, as a crew
+# would, and keeps LEG_CLEARANCE m from every pole.
+_LEG_FACTORS = (0.2, 0.35, 0.5, 0.7, 1.0, 1.4, 2.0, 3.0)
+LEG_TANGENTS = tuple(
+    sorted(
+        ((a, b) for a in _LEG_FACTORS for b in _LEG_FACTORS),
+        key=lambda ab: (ab[0] + ab[1], ab),
+    )
+)
+LEG_MIN_TANGENT = 40.0
+LEG_CLEARANCE = 100.0
+
+
+def repositioning_leg(x_from: np.ndarray, x_to: np.ndarray, dt: float, poles=()):
+    """The drive from one episode's last state to the next one's first: a cubic Hermite curve
+    between the two poses, its tangents the shortest of :data:`LEG_TANGENTS` that keeps
+    :data:`LEG_CLEARANCE` m from the ``poles`` ((x, y), radius) (else the one that keeps the
+    most), the speed going linearly from one speed to the other; heading along the curve, yaw
+    rate by differences, jets at a cruise setting. Kinematic, not the hull model (it is not a
+    demo). Returns (X: [K+1, dX], U: [K, dU])."""
+    from diffgcl.sim import hull
+
+    p0, p1 = x_from[hull.IX_PX : hull.IX_PY + 1], x_to[hull.IX_PX : hull.IX_PY + 1]
+    h0, h1 = x_from[hull.IX_PSI], x_to[hull.IX_PSI]
+    v0 = float(np.hypot(x_from[hull.IX_VX], x_from[hull.IX_VY]))
+    v1 = float(np.hypot(x_to[hull.IX_VX], x_to[hull.IX_VY]))
+    chord = float(np.hypot(*(p1 - p0)))
+    best, best_clearance = None, -np.inf
+    for f0, f1 in LEG_TANGENTS:
+        curve = _hermite(
+            p0,
+            p1,
+            max(f0 * chord, LEG_MIN_TANGENT) * np.array([np.cos(h0), np.sin(h0)]),
+            max(f1 * chord, LEG_MIN_TANGENT) * np.array([np.cos(h1), np.sin(h1)]),
+        )
+        clearance = min(
+            (float(np.min(np.hypot(*(curve - xy).T))) - r for xy, r in poles), default=np.inf
+        )
+        if clearance > best_clearance:
+            best, best_clearance = curve, clearance
+        if clearance >= LEG_CLEARANCE:
+            break
+    curve = best
+    arc = np.concatenate([[0.0], np.cumsum(np.hypot(*np.diff(curve, axis=0).T))])
+    duration = 2.0 * arc[-1] / max(v0 + v1, 1.0)
+    K = max(int(round(duration / dt)), 2)
+    tau = np.arange(K + 1) / K
+    travelled = arc[-1] * (v0 * tau + 0.5 * (v1 - v0) * tau**2) / (0.5 * (v0 + v1))
+    xy = np.stack([np.interp(travelled, arc, curve[:, j]) for j in range(2)], axis=1)
+    heading = np.unwrap(np.arctan2(*np.gradient(xy, axis=0)[:, ::-1].T))
+    heading += h0 - heading[0]
+    speed = v0 + (v1 - v0) * tau
+    X = np.zeros((K + 1, hull.DX))
+    X[:, hull.IX_PX : hull.IX_PY + 1] = xy
+    X[:, hull.IX_PSI] = heading
+    X[:, hull.IX_VX] = speed * np.cos(heading)
+    X[:, hull.IX_VY] = speed * np.sin(heading)
+    X[:, hull.IX_R] = np.gradient(heading, dt)
+    X[:, hull.IX_THRUST] = np.linspace(x_from[hull.IX_THRUST], x_to[hull.IX_THRUST], K + 1)
+    X[:, hull.IX_NOZZLE] = np.clip(2.0 * X[:, hull.IX_R], -0.5, 0.5)
+    X[:, hull.SL_OBS] = x_to[hull.SL_OBS]
+    U = X[1:, hull.SL_ACT].copy()
+    U[:, 0] = np.round(U[:, 0] / 250.0) * 250.0
+    U[:, 1] = np.round(U[:, 1] / np.deg2rad(2.0)) * np.deg2rad(2.0)
+    return X, U
+
+
+def _course_segment(p: OperatorProfile) -> tuple[np.ndarray, np.ndarray]:
+    """(start, end) of an episode's nominal course line: approach before the pole to
+    end_margin past it."""
+    e = np.array([np.cos(p.course), np.sin(p.course)])
+    return np.asarray(p.pole_xy) - p.approach * e, np.asarray(p.pole_xy) + p.end_margin * e
+
+
+def _segment_distance(xy: np.ndarray, a: np.ndarray, b: np.ndarray) -> float:
+    d = b - a
+    h = np.clip(np.dot(xy - a, d) / max(np.dot(d, d), 1e-9), 0.0, 1.0)
+    return float(np.hypot(*(xy - (a + h * d))))
+
+
+def _separate_poles(rng, profiles: list[OperatorProfile], min_distance: float):
+    """Profiles whose scenes are moved (pole redrawn in a box that grows with their number,
+    course and approach kept) until every two poles are at least ``min_distance`` apart and no
+    pole lies within ``0.8 min_distance`` of another episode's course line (at most 500 tries
+    each; the last try is kept)."""
+    half = max(150.0, 0.6 * min_distance * np.sqrt(len(profiles)))
+    out: list[OperatorProfile] = []
+    for p in profiles:
+        for _ in range(500):
+            lines = [_course_segment(q) for q in out]
+            if all(
+                np.hypot(*np.subtract(p.pole_xy, q.pole_xy)) >= min_distance for q in out
+            ) and all(
+                _segment_distance(np.asarray(q.pole_xy), *_course_segment(p)) >= 0.8 * min_distance
+                and _segment_distance(np.asarray(p.pole_xy), a, b) >= 0.8 * min_distance
+                for q, (a, b) in zip(out, lines, strict=True)
+            ):
+                break
+            xy = rng.uniform(-half, half, 2)
+            p = dataclasses.replace(p, pole_xy=(float(xy[0]), float(xy[1])))
+        out.append(p)
+    return out
+
+
+def _marker_texts(cfg: SynthConfig, set_index: int, i: int, colour: str) -> tuple[str, str]:
+    if cfg.markers == "id":
+        return f"start {i + 1}", f"end {i + 1}"
+    return f"start set={set_index} episode={i} pole={colour}", "end"
+
+
 def synthesize(
     out: str | os.PathLike,
     config: SynthConfig | None = None,
     progress: Callable[[Sequence], Any] | None = None,
+    overwrite: bool = False,
 ) -> SynthResult:
-    """Simulate every episode and write the bags into ``out`` (replaced atomically).
+    """Simulate every episode and write the bags into ``out`` (output folder rules of
+    :func:`diffgcl.io.write_folder`, kind :data:`SYNTH_FOLDER`: an earlier synthetic set there is
+    replaced atomically, a non-empty folder of anything else is refused unless ``overwrite``).
 
     Returns the written bags and the simulated truth (states on the model grid) per episode.
     """
@@ -673,6 +1018,14 @@ def synthesize(
         raise ValueError(f"bag_per must be 'episode' or 'set', got {cfg.bag_per!r}")
     if len(cfg.lidar) != len(cfg.episodes):
         raise ValueError("config.lidar needs one flag per set")
+    for name, value, allowed in (
+        ("layout", cfg.layout, tuple(LAYOUT_TOPICS)),
+        ("markers", cfg.markers, ("keyvalue", "id", "none")),
+        ("visible_poles", cfg.visible_poles, ("episode", "set")),
+    ):
+        if value not in allowed:
+            raise ValueError(f"{name} must be one of {allowed}, got {value!r}")
+    check_output_folder(out, SYNTH_FOLDER, overwrite)
     datum = cfg.datum or default_topic_map().datum
     params = true_params()
     taus = (float(params.tau_thrust), float(params.tau_nozzle))
@@ -680,53 +1033,104 @@ def synthesize(
     step_ns = round(dt * NS)
     rng = np.random.default_rng(cfg.seed)
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
-    try:
-        truths: list[EpisodeTruth] = []
-        bags: list[Path] = []
-        clock = cfg.start_ns
-        jobs = []
-        sets = [
-            (s, n_ep, lidar, draw_profiles(rng, n_ep, cfg))
-            for s, (n_ep, lidar) in enumerate(zip(cfg.episodes, cfg.lidar, strict=True), start=1)
-            if n_ep > 0
-        ]
-        # One simulation batch for all sets (one trace of the jitted step per process).
-        all_runs = simulate(
-            [p for *_, ps in sets for p in ps], params, rng, int(cfg.max_duration_s / dt)
-        )
-        for s, n_ep, lidar, profiles in sets:
-            runs, all_runs = all_runs[:n_ep], all_runs[n_ep:]
-            set_dir = tmp / f"set{s}"
-            set_dir.mkdir()
-            set_truths = []
-            for i, (prof, (X, U)) in enumerate(zip(profiles, runs, strict=True)):
+    truths: list[EpisodeTruth] = []
+    legs: list[dict] = []
+    bags: list[Path] = []
+    clock = cfg.start_ns
+    sets = []
+    for s, (n_ep, lidar) in enumerate(zip(cfg.episodes, cfg.lidar, strict=True), start=1):
+        if n_ep > 0:
+            profiles = draw_profiles(rng, n_ep, cfg)
+            if cfg.visible_poles == "set":
+                profiles = _separate_poles(rng, profiles, cfg.min_pole_separation)
+            sets.append((s, n_ep, lidar, profiles))
+    # One simulation batch for all sets (one trace of the jitted step per process).
+    all_runs = simulate(
+        [p for *_, ps in sets for p in ps], params, rng, int(cfg.max_duration_s / dt)
+    )
+    jobs: list[tuple[str, bool, Recording, np.random.Generator]] = []
+    glitches: dict[str, tuple[str, int, int, int]] = {}
+    for s, n_ep, lidar, profiles in sets:
+        runs, all_runs = all_runs[:n_ep], all_runs[n_ep:]
+        set_poles = tuple((p.pole_xy, p.pole_radius) for p in profiles)
+        previous = None
+        for i, (prof, (X, U)) in enumerate(zip(profiles, runs, strict=True)):
+            stem = f"set{s}_ep{i:03d}" if cfg.bag_per == "episode" else f"set{s}"
+            bag = f"set{s}/{bag_name(stem, cfg.fmt)}"
+            poles = set_poles if cfg.visible_poles == "set" else ((prof.pole_xy, prof.pole_radius),)
+            if previous is not None and cfg.repositioning and cfg.bag_per == "set":
+                leg_X, leg_U = repositioning_leg(previous[1][-1], X[0], dt, set_poles)
+                t_leg = int(previous[0][-1]) + step_ns * np.arange(leg_X.shape[0], dtype=np.int64)
+                leg = Recording(t_leg, leg_X, leg_U, poles, None, ())
+                jobs.append((bag, lidar, leg, np.random.default_rng([cfg.seed, s, 1000 + i])))
+                clearance = min(
+                    float(np.min(np.hypot(*(leg_X[:, :2] - xy).T))) - r for xy, r in set_poles
+                )
+                legs.append(
+                    {
+                        "set": s,
+                        "bag": bag,
+                        "t_start": t_leg[0] * 1e-9,
+                        "t_end": t_leg[-1] * 1e-9,
+                        "pole_clearance_m": clearance,
+                    }
+                )
+                clock = int(t_leg[-1])
+            else:
                 clock = -(-clock // step_ns) * step_ns
-                t = clock + step_ns * np.arange(X.shape[0], dtype=np.int64)
-                markers = (int(t[0] + MARKER_LEAD_NS), int(t[-1] - NS))
-                stem = f"set{s}_ep{i:03d}" if cfg.bag_per == "episode" else f"set{s}"
-                bag = set_dir / bag_name(stem, cfg.fmt)
-                truth = EpisodeTruth(s, i, prof, t, X, U, str(bag.relative_to(tmp)), markers)
-                set_truths.append(truth)
-                clock = int(t[-1]) + 20 * NS
-            jobs.append((set_dir, lidar, s, set_truths))
-            truths.extend(set_truths)
-        total = [(d, lid, s, [tr]) for d, lid, s, trs in jobs for tr in trs]
-        iterable = progress(total) if progress is not None else total
+            t = clock + step_ns * np.arange(X.shape[0], dtype=np.int64)
+            marker_ns = (int(t[0] + MARKER_LEAD_NS), int(t[-1] - NS))
+            start_text, end_text = _marker_texts(cfg, s, i, prof.pole_colour)
+            markers = (
+                ()
+                if cfg.markers == "none"
+                else ((marker_ns[0], start_text), (marker_ns[1], end_text))
+            )
+            obstacle = prof.pole_xy if cfg.obstacle_topic else None
+            rec = Recording(t, X, U, poles, obstacle, markers)
+            jobs.append((bag, lidar, rec, np.random.default_rng([cfg.seed, s, i])))
+            truths.append(EpisodeTruth(s, i, prof, t, X, U, bag, marker_ns))
+            if cfg.stamp_glitch is not None and bag not in glitches:
+                g = cfg.stamp_glitch
+                first = int(t[0] + round(g.at_s * NS))
+                glitches[bag] = (
+                    g.topic,
+                    first,
+                    first + round(g.duration_s * NS),
+                    round(g.jump_s * NS),
+                )
+            previous = (t, X)
+            clock = int(t[-1]) + 20 * NS
+    with write_folder(out, SYNTH_FOLDER, overwrite) as stage:
+        iterable = progress(jobs) if progress is not None else jobs
         batches: dict[str, list] = {}
         builder = _NullWriter(cfg.fmt)
-        for _, lidar, s, (truth,) in iterable:
-            ep_rng = np.random.default_rng([cfg.seed, s, truth.index])
-            msgs = episode_messages(builder, truth, lidar, cfg.sensors, datum, ep_rng, taus, s)
-            batches.setdefault(truth.bag, []).append(msgs)
+        for bag, lidar, rec, job_rng in iterable:
+            msgs = episode_messages(
+                builder,
+                rec,
+                lidar,
+                cfg.sensors,
+                datum,
+                job_rng,
+                taus,
+                cfg.layout,
+                glitches.get(bag),
+            )
+            batches.setdefault(bag, []).append(msgs)
         for rel, msg_batches in batches.items():
-            write_messages(tmp / rel, cfg.fmt, msg_batches)
+            (stage / rel).parent.mkdir(parents=True, exist_ok=True)
+            write_messages(stage / rel, cfg.fmt, msg_batches)
             bags.append(out / rel)
         manifest = {
             "format": "diffgcl-synth/1",
             "bag_format": cfg.fmt,
             "bag_per": cfg.bag_per,
+            "layout": cfg.layout,
+            "markers": cfg.markers,
+            "obstacle_topic": cfg.obstacle_topic,
+            "visible_poles": cfg.visible_poles,
+            "repositioning": cfg.repositioning,
             "seed": cfg.seed,
             "dt": dt,
             "datum": list(datum),
@@ -742,21 +1146,20 @@ def synthesize(
                     "index": tr.index,
                     "bag": tr.bag,
                     "pole": tr.profile.pole_colour,
+                    "pole_xy": list(tr.profile.pole_xy),
+                    "pole_radius": tr.profile.pole_radius,
                     "swerve_side": "left" if tr.profile.side > 0 else "right",
                     "t_start": tr.marker_ns[0] * 1e-9,
                     "t_end": tr.marker_ns[1] * 1e-9,
+                    "t_first": tr.t[0] * 1e-9,
+                    "t_last": tr.t[-1] * 1e-9,
                     "profile": asdict(tr.profile),
                 }
                 for tr in truths
             ],
+            "legs": legs,
         }
-        (tmp / "manifest.json").write_text(json.dumps(manifest, indent=1))
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+        (stage / "manifest.json").write_text(json.dumps(manifest, indent=1))
     return SynthResult(out=out, bags=tuple(dict.fromkeys(bags)), episodes=tuple(truths))
 
 

@@ -10,6 +10,9 @@ from diffgcl.types import Env
 _REGISTRY: dict[str, str] = {
     "arm": "diffgcl.envs.arm:make_arm_env",
     "hull": "diffgcl.envs.hull:make_hull_env",
+    "usv": "diffgcl.envs.usv:make_usv_env",
+    # Any MJCF file: make_env("mjcf", mjcf=PATH, ...); without a path the free-flying space robot.
+    "mjcf": "diffgcl.envs.mjcf_env:make_mjcf_env",
 }
 ENV_NAMES: tuple[str, ...] = tuple(_REGISTRY)
 

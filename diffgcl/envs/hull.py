@@ -69,6 +69,75 @@ def _softplus_sq(z: Array, scale: Array) -> Array:
     return (scale * jax.nn.softplus(z / scale)) ** 2
 
 
+def hull_points(params: HullParams, x: Array) -> Array:
+    """[3, 2] world positions of the bow, centre and stern circle centres of the hull outline
+    (a stadium of width ``beam`` and length ``length``) for a hull state ``x``."""
+    half = 0.5 * (params.length - params.beam)
+    c, s = jnp.cos(x[hull_sim.IX_PSI]), jnp.sin(x[hull_sim.IX_PSI])
+    offsets = jnp.asarray([-half, 0.0, half], x.dtype)
+    return x[:2] + offsets[:, None] * jnp.stack([c, s])
+
+
+def pole_clearance(params: HullParams, x: Array, radius: Array) -> Array:
+    """Distance (m) between the surface of a pole of ``radius`` at ``x``'s obstacle position and
+    the hull outline (a stadium of beam B around the centre line); ≤ 0 is a collision."""
+    half = 0.5 * (params.length - params.beam)
+    c, s = jnp.cos(x[hull_sim.IX_PSI]), jnp.sin(x[hull_sim.IX_PSI])
+    rel = x[hull_sim.SL_OBS] - x[:2]
+    along = c * rel[0] + s * rel[1]
+    across = -s * rel[0] + c * rel[1]
+    gap = jnp.hypot(along - jnp.clip(along, -half, half), across)
+    return gap - radius - 0.5 * params.beam
+
+
+def avoidance_cost(
+    weights: HullCostWeights,
+    params: HullParams,
+    x: Array,
+    u: Array,
+    terminal: Array,
+    *,
+    radius: Array,
+    cruise_speed: float,
+    cruise_thrust: float,
+    course_y: float = 0.0,
+) -> Array:
+    """The hand-written obstacle-avoidance cost of one step (see :meth:`HullEnv.expert_cost`):
+    hull state ``x``, physical command ``u = [thrust (N), nozzle (rad)]``, ``terminal`` (bool:
+    the step after the last action, where the course, heading and speed terms are weighted by
+    ``weights.terminal`` and there is no effort), a pole of ``radius`` at ``x``'s obstacle."""
+    w, p = weights, params
+    rel = hull_points(p, x) - x[hull_sim.SL_OBS]
+    dist = jnp.sqrt(jnp.sum(rel**2, axis=-1) + 1e-6)
+    d_safe = radius + 0.5 * p.beam + w.clearance_margin
+    clearance = w.clearance * jnp.sum(_softplus_sq(d_safe - dist, w.clearance_scale))
+    course = w.course * (x[hull_sim.IX_PY] - course_y) ** 2
+    heading = w.heading * (1.0 - jnp.cos(x[hull_sim.IX_PSI]))
+    speed = w.speed * (hull_sim.body_velocity(x)[0] - cruise_speed) ** 2
+    end_weight = jnp.where(terminal, w.terminal, 1.0)
+    thrust = u[hull_sim.IU_THRUST]
+    nozzle = u[hull_sim.IU_NOZZLE]
+    effort = w.thrust * ((thrust - cruise_thrust) / p.max_thrust) ** 2
+    effort += w.nozzle * (nozzle / p.max_nozzle) ** 2
+    t_lo = -p.reverse_fraction * p.max_thrust
+    over = (
+        _softplus_sq((thrust - p.max_thrust) / p.max_thrust, 0.02)
+        + _softplus_sq((t_lo - thrust) / p.max_thrust, 0.02)
+        + _softplus_sq((nozzle - p.max_nozzle) / p.max_nozzle, 0.02)
+        + _softplus_sq((-p.max_nozzle - nozzle) / p.max_nozzle, 0.02)
+    )
+    effort = jnp.where(terminal, 0.0, effort + w.limits * over)
+    return clearance + end_weight * (course + heading + speed) + effort
+
+
+def on_course(x: Array, course_y: float, course_tolerance: float, heading_tolerance: float):
+    """Whether hull state ``x`` is back on the course line y = course_y, heading 0: cross-track
+    error below ``course_tolerance`` (m) and heading error below ``heading_tolerance`` (rad)."""
+    psi = x[hull_sim.IX_PSI]
+    heading_ok = jnp.abs(jnp.arctan2(jnp.sin(psi), jnp.cos(psi))) < heading_tolerance
+    return (jnp.abs(x[hull_sim.IX_PY] - course_y) < course_tolerance) & heading_ok
+
+
 @dataclasses.dataclass(frozen=True, eq=False)
 class HullEnv:
     """Hull + pole env; build with :func:`make_hull_env`. Hashable by identity (jit static)."""
@@ -148,13 +217,6 @@ class HullEnv:
         return jax.vmap(self.initial_state)(jnp.stack([px, py], axis=-1))
 
     # ---- task ---------------------------------------------------------------------------------
-    def _hull_points(self, x: Array) -> Array:
-        """[3, 2] world positions of the bow, centre and stern circle centres of the hull."""
-        half = 0.5 * (self.params.length - self.params.beam)
-        c, s = jnp.cos(x[hull_sim.IX_PSI]), jnp.sin(x[hull_sim.IX_PSI])
-        offsets = jnp.asarray([-half, 0.0, half], x.dtype)
-        return x[:2] + offsets[:, None] * jnp.stack([c, s])
-
     def expert_cost(self, x: Array, u: Array, t: Array) -> Array:
         """Hand-written obstacle-avoidance cost c(x: [10], u: [2], t) -> scalar (C∞ in x, u).
 
@@ -165,38 +227,21 @@ class HullEnv:
         * a smooth penalty on commands beyond the actuator limits.
         At t = T (u = 0 passed) the course, heading and speed terms are weighted by ``terminal``.
         """
-        w, p = self.weights, self.params
-        rel = self._hull_points(x) - x[hull_sim.SL_OBS]
-        dist = jnp.sqrt(jnp.sum(rel**2, axis=-1) + 1e-6)
-        d_safe = self.pole_radius + 0.5 * p.beam + w.clearance_margin
-        clearance = w.clearance * jnp.sum(_softplus_sq(d_safe - dist, w.clearance_scale))
-        course = w.course * (x[hull_sim.IX_PY] - self.course_y) ** 2
-        heading = w.heading * (1.0 - jnp.cos(x[hull_sim.IX_PSI]))
-        speed = w.speed * (hull_sim.body_velocity(x)[0] - self.cruise_speed) ** 2
-        terminal = jnp.where(t >= self.horizon, w.terminal, 1.0)
-        thrust = u[hull_sim.IU_THRUST]
-        nozzle = u[hull_sim.IU_NOZZLE]
-        effort = w.thrust * ((thrust - self.cruise_thrust) / p.max_thrust) ** 2
-        effort += w.nozzle * (nozzle / p.max_nozzle) ** 2
-        t_lo = -p.reverse_fraction * p.max_thrust
-        over = (
-            _softplus_sq((thrust - p.max_thrust) / p.max_thrust, 0.02)
-            + _softplus_sq((t_lo - thrust) / p.max_thrust, 0.02)
-            + _softplus_sq((nozzle - p.max_nozzle) / p.max_nozzle, 0.02)
-            + _softplus_sq((-p.max_nozzle - nozzle) / p.max_nozzle, 0.02)
+        return avoidance_cost(
+            self.weights,
+            self.params,
+            x,
+            u,
+            t >= self.horizon,
+            radius=self.pole_radius,
+            cruise_speed=self.cruise_speed,
+            cruise_thrust=self.cruise_thrust,
+            course_y=self.course_y,
         )
-        effort = jnp.where(t >= self.horizon, 0.0, effort + w.limits * over)
-        return clearance + terminal * (course + heading + speed) + effort
 
     def clearance(self, x: Array) -> Array:
         """Distance (m) between the pole surface and the hull outline (a 10.5 × 3.4 stadium)."""
-        half = 0.5 * (self.params.length - self.params.beam)
-        c, s = jnp.cos(x[hull_sim.IX_PSI]), jnp.sin(x[hull_sim.IX_PSI])
-        rel = x[hull_sim.SL_OBS] - x[:2]
-        along = c * rel[0] + s * rel[1]
-        across = -s * rel[0] + c * rel[1]
-        gap = jnp.hypot(along - jnp.clip(along, -half, half), across)
-        return gap - self.pole_radius - 0.5 * self.params.beam
+        return pole_clearance(self.params, x, self.pole_radius)
 
     def metrics(self, X: Array) -> dict[str, Array]:
         """X: [T+1, 10] -> scalars: minimum clearance (m), final cross-track error (m), final
@@ -218,10 +263,8 @@ class HullEnv:
         < ``course_tolerance`` and final heading error < ``heading_tolerance``.
         """
         no_collision = jnp.min(jax.vmap(self.clearance)(X)) > 0.0
-        on_course = jnp.abs(X[-1, hull_sim.IX_PY] - self.course_y) < self.course_tolerance
-        psi = X[-1, hull_sim.IX_PSI]
-        heading_ok = jnp.abs(jnp.arctan2(jnp.sin(psi), jnp.cos(psi))) < self.heading_tolerance
-        return no_collision & on_course & heading_ok
+        back = on_course(X[-1], self.course_y, self.course_tolerance, self.heading_tolerance)
+        return no_collision & back
 
 
 def cruise_thrust(params: HullParams, speed: float) -> float:

@@ -265,3 +265,40 @@ def arm_animation(env, X, path: Path, every: int = 2) -> None:
     path.parent.mkdir(parents=True, exist_ok=True)
     anim.save(path, writer=PillowWriter(fps=max(1, round(1 / (every * env.dt)))))
     plt.close(fig)
+
+
+# ---- global policies ----
+
+
+def policy_paths(env, policy, params, start_sets: dict, path: Path, title: str = "") -> None:
+    """Paths of a global policy's noise-free rollouts in the plane of the first two state
+    coordinates (the arm's joint angles, the hull's position) from sets of starts
+    (``{name: x0 [B, dX]}``), one panel per set; green: the env's success test passes, red: it
+    fails; the grey square is the success box around ``env.target`` where the env has one."""
+    from diffgcl.eval.policy import policy_rollouts, policy_success
+
+    plt = _plt()
+    fig, axes = plt.subplots(1, len(start_sets), figsize=(5.2 * len(start_sets), 4.6))
+    axes = np.atleast_1d(axes)
+    tol = getattr(env, "success_tolerance", None)
+    target = getattr(env, "target", None)
+    for ax, (name, x0) in zip(axes, start_sets.items(), strict=True):
+        rollouts = jax.jit(lambda p, x: policy_rollouts(env, policy, p, x))
+        traj = rollouts(params, jnp.asarray(x0))
+        ok = np.asarray(policy_success(env, traj))
+        X = np.asarray(traj.X)
+        for b in range(X.shape[0]):
+            colour = "tab:green" if ok[b] else "tab:red"
+            ax.plot(X[b, :, 0], X[b, :, 1], color=colour, lw=1.4)
+            ax.plot(X[b, 0, 0], X[b, 0, 1], "o", color=colour, ms=4)
+        if tol is not None and target is not None:
+            corner = np.asarray(target)[:2] - float(tol)
+            box = plt.Rectangle(corner, 2 * tol, 2 * tol, color="0.5", alpha=0.4, label="target")
+            ax.add_patch(box)
+            ax.legend(loc="lower right")
+        names = getattr(env, "state_names", ("x[0]", "x[1]"))
+        ax.set_xlabel(names[0])
+        ax.set_ylabel(names[1])
+        ax.set_title(f"{name} starts: {ok.sum()}/{ok.size} succeed")
+    fig.suptitle(f"global policy {title}, noise-free rollouts".strip())
+    _save(fig, path)

@@ -1,0 +1,328 @@
+"""The USV obstacle-avoidance task in the task frame: the Odin-like hull passing a pole and
+returning to its course, as the demonstrations from the bags see it (DESIGN §7b).
+
+Task frame: the course line is the x axis (y = 0, heading 0), the boat travels towards +x and a
+pole of some radius stands ahead. Each demonstration is moved into this frame
+(:mod:`diffgcl.data.task_frame`), so one env covers every episode; a condition is a start state.
+
+State ``x = [p_x, p_y, ψ, ẋ, ẏ, ψ̇, thrust, nozzle, pole_x, pole_y, pole_radius]`` (dX = 11): the
+hull's state of :mod:`diffgcl.sim.hull` plus the pole's radius, constant like its position, so
+that poles of different sizes are conditions of one env (and batch under ``vmap``).
+
+Action ``ũ`` (dU = 2), normalised: the physical command is ``u = offset + scale ⊙ ũ`` with
+``offset = [cruise thrust, 0]`` and ``scale = [T_max, δ_max]`` by default. A unit of ũ is the
+actuator's range in both dimensions, so one exploration variance and one action weight fit both
+(in newtons and radians a variance of 0.1 means no thrust exploration and wild nozzle swings).
+
+Observation (what the policy sees; the cost learns on the full state):
+
+* ``"full"`` — LiDAR ranges (32 beams), radar ranges (16), sin ψ, cos ψ (the heading, which in
+  the task frame is the heading error to the course), ν = [u, v, r], and the cross-track error y
+  (from GNSS and the planned course line); dO = 54;
+* ``"radar"`` — the same without the LiDAR beams (the seed's set 1 had no LiDAR); dO = 22;
+* ``"ranges"`` — the ablation without course information: ranges and ν only; dO = 51.
+
+Ranges come from :func:`pole_ranges`, the exact intersection of the layout's horizontal rays with
+the pole (a vertical capsule, i.e. a circle at mast height) — the same numbers as ``mjx.ray`` in
+the hull's MJCF scene (tested), at a fraction of the cost, which matters when the policy's
+observations are needed at every sample state and differentiated for its linearisation.
+
+Success (:meth:`UsvEnv.success`): the hull outline never touches the pole, and at the end the boat
+is back on course (cross-track below ``course_tolerance``, heading error below
+``heading_tolerance``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffgcl.checks import check_shape
+from diffgcl.envs.hull import (
+    HullCostWeights,
+    avoidance_cost,
+    cruise_thrust,
+    on_course,
+    pole_clearance,
+)
+from diffgcl.sim import hull as hull_sim
+from diffgcl.sim.hull import HullParams
+from diffgcl.sim.sensors import SensorLayout, add_range_noise
+from diffgcl.types import Array, PRNGKey
+
+IX_RADIUS = 10
+DX = 11
+OBSERVATIONS = ("full", "radar", "ranges")
+STATE_NAMES = (*hull_sim.STATE_NAMES, "pole_radius")
+
+
+def pole_ranges(layout: SensorLayout, x: Array, radius: Array) -> Array:
+    """Noise-free beam ranges [num_beams] of the layout from hull state ``x`` (its first 10
+    entries) to a pole of ``radius`` at the state's obstacle position.
+
+    Each ray leaves the mast (``layout.origin`` in the hull frame) horizontally; its distance to
+    the pole is the entry point into the pole's circle (0 from inside), a beam reads its shortest
+    ray, and a beam with no hit reads its maximum range (as :func:`~diffgcl.sim.sensors.
+    range_readings` does with ``mjx.ray``).
+    """
+    psi = x[hull_sim.IX_PSI]
+    c, s = jnp.cos(psi), jnp.sin(psi)
+    R = jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
+    origin = x[:2] + R @ jnp.asarray(layout.origin[:2], x.dtype)
+    dirs = jnp.asarray(layout.ray_directions[:, :2], x.dtype) @ R.T  # [num_rays, 2] world
+    rel = x[hull_sim.SL_OBS] - origin
+    along = dirs @ rel
+    lateral2 = jnp.sum(rel**2) - along**2
+    slack = radius**2 - lateral2
+    hit = (slack >= 0.0) & (along + jnp.sqrt(jnp.maximum(slack, 0.0)) >= 0.0)
+    half_chord = jnp.sqrt(jnp.where(hit, jnp.maximum(slack, 1e-12), 1.0))
+    dist = jnp.where(hit, jnp.maximum(along - half_chord, 0.0), jnp.inf)
+    beams = layout.beams_from_rays(dist)
+    return jnp.minimum(beams, jnp.asarray(layout.max_ranges, x.dtype))
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class UsvEnv:
+    """Hull passing a pole in the task frame; build with :func:`make_usv_env`. Hashable by
+    identity (a jit static argument)."""
+
+    params: HullParams
+    model: object  # mjx.Model of the hull scene (for hull_step)
+    layout: SensorLayout
+    x0: Array  # [C, 11]
+    cruise_speed: float
+    cruise_thrust: float
+    action_offset: Array  # [2] physical command at ũ = 0
+    action_scale: Array  # [2] physical command per unit of ũ
+    observation: str = "full"
+    weights: HullCostWeights = HullCostWeights()
+    horizon: int = 240
+    course_tolerance: float = 5.0
+    heading_tolerance: float = float(np.deg2rad(20.0))
+    name: str = "usv"
+    dX: int = DX
+    dU: int = hull_sim.DU
+    mjcf_path: str = ""
+    state_names: tuple[str, ...] = STATE_NAMES
+
+    @property
+    def dO(self) -> int:
+        n = {"full": self.layout.num_beams, "radar": self.layout.radar_beams}
+        return {"full": n["full"] + 6, "radar": n["radar"] + 6, "ranges": n["full"] + 3}[
+            self.observation
+        ]
+
+    @property
+    def dt(self) -> float:
+        return round(float(self.model.opt.timestep) * hull_sim.SUBSTEPS, 6)
+
+    # ---- dynamics and sensing -----------------------------------------------------------------
+    def command(self, u: Array) -> Array:
+        """Physical command [thrust (N), nozzle (rad)] of a normalised action ``ũ: [2]``."""
+        return self.action_offset + self.action_scale * u
+
+    def normalised_action(self, u_phys: Array) -> Array:
+        """The inverse of :meth:`command` (e.g. for recorded commands)."""
+        return (u_phys - self.action_offset) / self.action_scale
+
+    def step(self, x: Array, u: Array) -> Array:
+        """x: [11], ũ: [2] -> x': [11] (:func:`diffgcl.sim.hull.hull_step` on the hull part)."""
+        check_shape("usv.step", "x", x, (self.dX,))
+        check_shape("usv.step", "u", u, (self.dU,))
+        nxt = hull_sim.hull_step(self.params, x[:IX_RADIUS], self.command(u), self.model)
+        return jnp.concatenate([nxt, x[IX_RADIUS:]])
+
+    def ranges(self, x: Array) -> Array:
+        """Noise-free beam ranges [num_beams] (LiDAR then radar)."""
+        return pole_ranges(self.layout, x[:IX_RADIUS], x[IX_RADIUS])
+
+    def obs(self, x: Array, key: PRNGKey | None = None) -> Array:
+        """x: [11] -> o: [dO] (see the module docstring); ``key`` adds the layout's range noise."""
+        check_shape("usv.obs", "x", x, (self.dX,))
+        r = self.ranges(x)
+        if key is not None:
+            r = add_range_noise(r, self.layout, key)
+        psi = x[hull_sim.IX_PSI]
+        nu = hull_sim.body_velocity(x[:IX_RADIUS])
+        heading = jnp.stack([jnp.sin(psi), jnp.cos(psi)])
+        cross_track = x[hull_sim.IX_PY : hull_sim.IX_PY + 1]
+        if self.observation == "ranges":
+            return jnp.concatenate([r, nu])
+        if self.observation == "radar":
+            r = r[self.layout.lidar_beams :]
+        return jnp.concatenate([r, heading, nu, cross_track])
+
+    def initial_states(self) -> Array:
+        """Conditions x0: [C, 11]."""
+        return self.x0
+
+    # ---- task ---------------------------------------------------------------------------------
+    def expert_cost(self, x: Array, u: Array, t: Array) -> Array:
+        """The hand-written avoidance cost (:func:`diffgcl.envs.hull.avoidance_cost`) of the
+        state and the normalised action (the terminal step passes ũ = 0, which it ignores)."""
+        return avoidance_cost(
+            self.weights,
+            self.params,
+            x[:IX_RADIUS],
+            self.command(u),
+            t >= self.horizon,
+            radius=x[IX_RADIUS],
+            cruise_speed=self.cruise_speed,
+            cruise_thrust=self.cruise_thrust,
+        )
+
+    def clearance(self, x: Array) -> Array:
+        """Distance (m) between the pole's surface and the hull outline; ≤ 0 is a collision."""
+        return pole_clearance(self.params, x[:IX_RADIUS], x[IX_RADIUS])
+
+    def back_on_course(self, x: Array) -> Array:
+        """Cross-track and heading error within the tolerances (bool)."""
+        return on_course(x, 0.0, self.course_tolerance, self.heading_tolerance)
+
+    def success(self, X: Array) -> Array:
+        """X: [T+1, 11] -> bool: no collision at any state, back on course at the end."""
+        no_collision = jnp.min(jax.vmap(self.clearance)(X)) > 0.0
+        return no_collision & self.back_on_course(X[-1])
+
+    def metrics(self, X: Array) -> dict[str, Array]:
+        """X: [T+1, 11] -> min clearance (m), final cross-track (m) and heading error (rad),
+        largest cross-track excursion (m), collision, back on course, the side passed at the
+        closest approach (+1: the boat is to the left of the pole, y above it, i.e. it swerved to
+        port; −1: to starboard) and success."""
+        clearance = jax.vmap(self.clearance)(X)
+        k = jnp.argmin(clearance)
+        psi = X[-1, hull_sim.IX_PSI]
+        side = jnp.sign(X[k, hull_sim.IX_PY] - X[k, hull_sim.IX_OBS_Y])
+        return {
+            "min_clearance": clearance[k],
+            "final_cross_track": jnp.abs(X[-1, hull_sim.IX_PY]),
+            "final_heading_error": jnp.abs(jnp.arctan2(jnp.sin(psi), jnp.cos(psi))),
+            "max_cross_track": jnp.max(jnp.abs(X[:, hull_sim.IX_PY])),
+            "collision": clearance[k] <= 0.0,
+            "back_on_course": self.back_on_course(X[-1]),
+            "side": side,
+            "success": self.success(X),
+        }
+
+    def cost_features(self, x: Array) -> Array:
+        """Task features a sailor would use, for the learned cost: [16].
+
+        clearance to the pole (m) and two soft proximity features exp(−clearance/ℓ) (ℓ = 5, 20
+        m); the pole's position in the hull frame (along, across; m) and its bearing (cos, sin);
+        the closing speed (m/s); cross-track error (m), sin ψ and 1 − cos ψ (heading error);
+        surge speed minus cruise, sway speed (m/s), yaw rate (rad/s); the lagged thrust and nozzle
+        as fractions of their ranges.
+        """
+        h = x[:IX_RADIUS]
+        p = self.params
+        psi = h[hull_sim.IX_PSI]
+        c, s = jnp.cos(psi), jnp.sin(psi)
+        rel = h[hull_sim.SL_OBS] - h[:2]
+        along = c * rel[0] + s * rel[1]
+        across = -s * rel[0] + c * rel[1]
+        dist = jnp.sqrt(along**2 + across**2 + 1e-6)
+        vel = h[hull_sim.SL_QVEL][:2]
+        closing = (rel @ vel) / dist
+        clearance = self.clearance(x)
+        nu = hull_sim.body_velocity(h)
+        return jnp.stack(
+            [
+                clearance,
+                jnp.exp(-jnp.maximum(clearance, 0.0) / 5.0),
+                jnp.exp(-jnp.maximum(clearance, 0.0) / 20.0),
+                along,
+                across,
+                along / dist,
+                across / dist,
+                closing,
+                h[hull_sim.IX_PY],
+                s,
+                1.0 - c,
+                nu[0] - self.cruise_speed,
+                nu[1],
+                nu[2],
+                h[hull_sim.IX_THRUST] / p.max_thrust,
+                h[hull_sim.IX_NOZZLE] / p.max_nozzle,
+            ]
+        )
+
+    def start_state(self, pole_xy, radius, speed, heading: float = 0.0, cross_track: float = 0.0):
+        """x0: [11] at (0, cross_track) heading ``heading`` at ``speed`` m/s (thrust lagged at the
+        thrust that holds that speed, nozzle centred), the pole at ``pole_xy`` with ``radius``."""
+        dtype = self.x0.dtype
+        p = self.params
+        thrust = (p.damping_u * speed + p.damping_uu * speed * jnp.abs(speed)) / p.thrust_gain
+        x = jnp.zeros(self.dX, dtype)
+        x = x.at[hull_sim.IX_PY].set(cross_track).at[hull_sim.IX_PSI].set(heading)
+        x = x.at[hull_sim.IX_VX].set(speed * jnp.cos(heading))
+        x = x.at[hull_sim.IX_VY].set(speed * jnp.sin(heading))
+        x = x.at[hull_sim.IX_THRUST].set(thrust)
+        x = x.at[hull_sim.SL_OBS].set(jnp.asarray(pole_xy, dtype))
+        return x.at[IX_RADIUS].set(radius)
+
+
+def default_conditions(radius: float = 0.5, speed: float = 10.0) -> np.ndarray:
+    """x0 [4, 11]: the hull env's default poles (:data:`diffgcl.envs.hull.DEFAULT_POLES`) ahead of
+    a boat at the origin on course at ``speed`` (thrust state at the thrust that holds it)."""
+    from diffgcl.envs.hull import DEFAULT_POLES
+
+    params = hull_sim.default_params(np.float64)
+    poles = np.asarray(DEFAULT_POLES, dtype=float)
+    x0 = np.zeros((poles.shape[0], DX))
+    x0[:, hull_sim.IX_VX] = speed
+    x0[:, hull_sim.IX_THRUST] = cruise_thrust(params, speed)
+    x0[:, hull_sim.SL_OBS] = poles
+    x0[:, IX_RADIUS] = radius
+    return x0
+
+
+def make_usv_env(
+    x0=None,
+    *,
+    params: HullParams | None = None,
+    layout: SensorLayout | None = None,
+    cruise_speed: float = 10.0,
+    horizon: int = 240,
+    observation: str = "full",
+    weights: HullCostWeights | None = None,
+    action_scale=None,
+) -> UsvEnv:
+    """The USV task env with conditions ``x0: [C, 11]`` (task frame; see
+    :func:`diffgcl.data.task_frame.usv_conditions`; default :func:`default_conditions`), hull
+    ``params`` (default nominal; e.g. identified from bags), sensor ``layout``, ``cruise_speed``
+    (m/s; the thrust that holds it is the action offset), horizon T, the policy's
+    ``observation`` set (``OBSERVATIONS``).
+    ``action_scale`` defaults to [max thrust, max nozzle angle]."""
+    if observation not in OBSERVATIONS:
+        raise ValueError(f"usv: observation {observation!r}; choose one of {OBSERVATIONS}")
+    dtype = jnp.zeros(()).dtype
+    x0 = default_conditions(speed=cruise_speed) if x0 is None else x0
+    x0 = np.atleast_2d(np.asarray(x0, dtype=float))
+    if x0.shape[1:] != (DX,):
+        raise ValueError(f"usv: x0 must be [C, {DX}] task-frame states, got {x0.shape}")
+    if not np.all(x0[:, IX_RADIUS] > 0):
+        raise ValueError("usv: every condition needs a positive pole radius (x0[:, 10])")
+    params = hull_sim.default_params(dtype) if params is None else params
+    params = jax.tree.map(lambda v: jnp.asarray(v, dtype), params)
+    thrust = cruise_thrust(params, cruise_speed)
+    scale = (
+        [float(params.max_thrust), float(params.max_nozzle)]
+        if action_scale is None
+        else action_scale
+    )
+    return UsvEnv(
+        params=params,
+        model=hull_sim.hull_model(dtype)[1],
+        layout=layout or SensorLayout(),
+        x0=jnp.asarray(x0, dtype),
+        cruise_speed=float(cruise_speed),
+        cruise_thrust=thrust,
+        action_offset=jnp.asarray([thrust, 0.0], dtype),
+        action_scale=jnp.asarray(scale, dtype),
+        observation=observation,
+        weights=weights or HullCostWeights(),
+        horizon=horizon,
+    )

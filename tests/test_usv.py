@@ -1,0 +1,196 @@
+"""The USV task (diffgcl.envs.usv, diffgcl.data.task_frame): exact ranges against mjx.ray in the
+hull's MJCF scene, the same dynamics and expert cost as the hull env, the task frame keeping the
+demos' geometry, and the evaluation's collision test against the env's clearance."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffgcl.envs.hull import make_hull_env
+from diffgcl.envs.usv import IX_RADIUS, make_usv_env, pole_ranges
+from diffgcl.sim import hull as hull_sim
+
+
+def random_states(key, n, pole=(40.0, 3.0)):
+    """Hull states around a pole: positions within 80 m, any heading, some speed."""
+    k1, k2, k3 = jax.random.split(key, 3)
+    p = jnp.asarray(pole) + jax.random.uniform(k1, (n, 2), minval=-80.0, maxval=80.0)
+    psi = jax.random.uniform(k2, (n,), minval=-np.pi, maxval=np.pi)
+    v = jax.random.normal(k3, (n, 3)) * jnp.array([4.0, 1.0, 0.1])
+    x = jnp.zeros((n, hull_sim.DX))
+    x = x.at[:, :2].set(p).at[:, hull_sim.IX_PSI].set(psi).at[:, hull_sim.SL_QVEL].set(v)
+    x = x.at[:, hull_sim.IX_THRUST].set(6000.0).at[:, hull_sim.IX_NOZZLE].set(0.1)
+    return x.at[:, hull_sim.SL_OBS].set(jnp.asarray(pole))
+
+
+@pytest.mark.parametrize("radius", [0.3, 0.9])
+def test_exact_ranges_equal_mjx_ray(radius):
+    hull_env = make_hull_env(pole_radius=radius)
+    X = random_states(jax.random.PRNGKey(0), 24)
+    X = X.at[0, :2].set(jnp.array([40.0 - 30.0, 3.0])).at[0, hull_sim.IX_PSI].set(0.0)  # ahead
+    ray = jax.jit(jax.vmap(hull_env.ranges))(X)
+    exact = jax.vmap(lambda x: pole_ranges(hull_env.layout, x, radius))(X)
+    np.testing.assert_allclose(np.asarray(exact), np.asarray(ray), atol=1e-6)
+    assert float(jnp.min(ray[0])) < 40.0  # the pole straight ahead is seen
+
+
+def test_step_cost_and_clearance_agree_with_the_hull_env():
+    radius = 0.7
+    usv = make_usv_env(cruise_speed=9.0)
+    hull_env = make_hull_env(pole_radius=radius, cruise_speed=9.0, horizon=usv.horizon)
+    X = random_states(jax.random.PRNGKey(1), 6)
+    Xu = jnp.concatenate([X, jnp.full((6, 1), radius)], axis=1)
+    u = jnp.array([0.3, -0.4])
+    u_phys = usv.command(u)
+    np.testing.assert_allclose(
+        np.asarray(u_phys), [usv.cruise_thrust + 0.3 * 12000.0, -0.4 * np.deg2rad(30.0)]
+    )
+    np.testing.assert_allclose(np.asarray(usv.normalised_action(u_phys)), np.asarray(u))
+    nxt = jax.vmap(lambda x: usv.step(x, u))(Xu)
+    ref = jax.vmap(lambda x: hull_env.step(x, u_phys))(X)
+    np.testing.assert_allclose(np.asarray(nxt[:, :IX_RADIUS]), np.asarray(ref), rtol=1e-12)
+    np.testing.assert_array_equal(np.asarray(nxt[:, IX_RADIUS]), radius)
+    for t in (0, usv.horizon):
+        c = jax.vmap(lambda x, t=t: usv.expert_cost(x, u, t))(Xu)
+        r = jax.vmap(lambda x, t=t: hull_env.expert_cost(x, u_phys, t))(X)
+        np.testing.assert_allclose(np.asarray(c), np.asarray(r), rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(jax.vmap(usv.clearance)(Xu)), np.asarray(jax.vmap(hull_env.clearance)(X))
+    )
+
+
+def test_observation_layouts_and_features():
+    usv = make_usv_env(horizon=20)
+    x = usv.initial_states()[1].at[hull_sim.IX_PY].set(1.5).at[hull_sim.IX_PSI].set(0.1)
+    x = x.at[hull_sim.IX_PX].set(x[hull_sim.IX_OBS_X] - 30.0)  # the pole 30 m ahead
+    o = usv.obs(x)
+    assert o.shape == (usv.dO,) == (54,)
+    np.testing.assert_allclose(np.asarray(o[48:50]), [np.sin(0.1), np.cos(0.1)])
+    assert float(o[-1]) == 1.5
+    assert float(jnp.min(o[:32])) < 30.0  # the LiDAR sees it
+    noisy = usv.obs(x, jax.random.PRNGKey(0))
+    assert 0.0 < float(jnp.max(jnp.abs(noisy - o)[:32])) < 0.5
+    radar = make_usv_env(horizon=20, observation="radar")
+    np.testing.assert_allclose(np.asarray(radar.obs(x)[:16]), np.asarray(o[32:48]))
+    assert radar.dO == 22 and make_usv_env(observation="ranges").dO == 51
+    f = jax.jacfwd(usv.cost_features)(x)
+    assert f.shape == (16, usv.dX) and np.isfinite(np.asarray(f)).all()
+    with pytest.raises(ValueError, match="observation"):
+        make_usv_env(observation="sonar")
+    with pytest.raises(ValueError, match="radius"):
+        make_usv_env(np.zeros((1, 11)))
+
+
+def test_success_and_metrics_follow_the_clearance():
+    usv = make_usv_env(horizon=10)
+    x = usv.initial_states()[0]
+    X = jnp.broadcast_to(x, (11, usv.dX))
+    m = usv.metrics(X)
+    assert not bool(m["collision"]) and bool(m["success"])  # on course, far from the pole
+    hit = X.at[5, :2].set(X[5, hull_sim.SL_OBS] + jnp.array([0.0, 1.0]))
+    m = usv.metrics(hit)
+    assert bool(m["collision"]) and not bool(m["success"]) and float(m["min_clearance"]) < 0
+    assert float(m["side"]) == 1.0  # the boat is above (to the left of) the pole
+
+
+def world_demos(n=3, T=40, seed=0):
+    """Straight-ish hull tracks in world coordinates past poles, as ingestion would give them."""
+    from diffgcl.data.demos import DemoSet
+    from diffgcl.envs.hull import observation
+
+    rng = np.random.default_rng(seed)
+    X = np.zeros((n, T + 1, hull_sim.DX))
+    for i in range(n):
+        start, course = rng.uniform(-200, 200, 2), rng.uniform(-np.pi, np.pi)
+        e = np.array([np.cos(course), np.sin(course)])
+        pole = start + (90.0 + 10.0 * i) * e + rng.normal(0, 1, 2)
+        t = np.arange(T + 1)[:, None]
+        p = start + 5.0 * t * e + np.sin(t / 7.0) * 3.0 * np.array([-e[1], e[0]])
+        X[i, :, :2] = p
+        X[i, :, hull_sim.IX_PSI] = course + 0.1 * np.sin(t[:, 0] / 5.0) + 2 * np.pi * (i - 1)
+        X[i, :, hull_sim.IX_VX : hull_sim.IX_VY + 1] = np.gradient(p, axis=0) / 0.1
+        X[i, :, hull_sim.IX_R] = rng.normal(0, 0.05, T + 1)
+        X[i, :, hull_sim.SL_OBS] = pole
+    ranges = rng.uniform(1, 60, (n, T + 1, 48))
+    O = np.asarray(
+        jax.vmap(jax.vmap(lambda r, x: observation(r, x[2], hull_sim.body_velocity(x))))(
+            jnp.asarray(ranges), jnp.asarray(X)
+        )
+    )
+    U = rng.normal(size=(n, T, 2))
+    return DemoSet(X=X, U=U, O=O, mask=np.ones((n, T + 1)), dt=0.1, env="hull")
+
+
+def test_task_frame_keeps_the_geometry():
+    from diffgcl.data.task_frame import rotate_states, to_task_frame
+
+    demos = world_demos()
+    task = to_task_frame(demos)
+
+    def pole_distance(X):
+        return np.hypot(*(X[..., :2] - X[..., hull_sim.SL_OBS]).T)
+
+    np.testing.assert_allclose(pole_distance(task.X), pole_distance(demos.X), rtol=1e-12)
+    np.testing.assert_allclose(task.X[:, 0, :2], 0.0, atol=1e-9)  # the start is the origin
+    np.testing.assert_allclose(task.X[:, :, hull_sim.IX_OBS_Y], 0.0, atol=1e-9)  # pole ahead
+    assert np.all(task.X[:, :, hull_sim.IX_OBS_X] > 0)
+    assert np.all(np.abs(task.X[:, 0, hull_sim.IX_PSI]) < np.pi)
+    nu = jax.vmap(jax.vmap(hull_sim.body_velocity))
+    np.testing.assert_allclose(nu(task.X), nu(demos.X), atol=1e-9)  # body frame unchanged
+    np.testing.assert_allclose(task.O[..., :48], demos.O[..., :48])  # ranges unchanged
+    np.testing.assert_allclose(task.O[..., 48], np.sin(task.X[..., hull_sim.IX_PSI]), atol=1e-12)
+    np.testing.assert_allclose(task.U, demos.U)
+    for i in range(demos.num_episodes):  # the inverse transform gives the bag's data back
+        frame = task.episodes[i]["task_frame"]
+        back = rotate_states(task.X[i], np.zeros(2), -frame["course"])
+        back[:, :2] += frame["origin"]
+        back[:, hull_sim.SL_OBS] += frame["origin"]
+        d = back[:, hull_sim.IX_PSI] - demos.X[i, :, hull_sim.IX_PSI]
+        np.testing.assert_allclose(np.cos(d), 1.0, atol=1e-12)
+        back[:, hull_sim.IX_PSI] = demos.X[i, :, hull_sim.IX_PSI]
+        np.testing.assert_allclose(back, demos.X[i], atol=1e-9)
+
+
+def test_pass_windows_centre_the_closest_approach():
+    from diffgcl.data.task_frame import closest_approach, pass_windows, to_task_frame
+
+    task = to_task_frame(world_demos(T=40))
+    k = [closest_approach(task.X[i], task.mask[i]) for i in range(3)]
+    before, after = min(k), 40 - max(k)
+    win = pass_windows(task, before, after)
+    assert win.X.shape == (3, before + after + 1, hull_sim.DX) and win.horizon == before + after
+    for i in range(3):
+        assert closest_approach(win.X[i], win.mask[i]) == before
+        assert win.episodes[i]["window"] == [k[i] - before, k[i] + after]
+    with pytest.warns(UserWarning, match="no valid window"):
+        short = pass_windows(task, before + 1, after)
+    assert short.num_episodes < 3
+
+
+def test_network_on_task_features_is_the_network_on_the_features():
+    """A cost network with a feature map equals the plain network applied to φ(x); its goal
+    regulariser differentiates through the normaliser the same way."""
+    from diffgcl.costs.gcl import goal_penalty
+    from diffgcl.costs.network import CostNetwork, CostNetworkConfig
+
+    usv = make_usv_env()
+    phi = usv.cost_features
+    config = CostNetworkConfig(hidden=(40,), n_features=20, features="env")
+    net = CostNetwork(config, usv.dX, usv.dU, jnp.float64, feature_map=phi)
+    bare = CostNetwork(config, 16, usv.dU, jnp.float64)
+    X = usv.initial_states()
+    X = X.at[:, hull_sim.IX_PX].set(jnp.array([60.0, 90.0, 100.0, 95.0]))
+    params = net.init(jax.random.PRNGKey(0)).replace(norm=net.fit_normaliser(X))
+    u = jnp.array([0.2, -0.1])
+    for x in X:
+        np.testing.assert_allclose(
+            float(net.cost(params, x, u)), float(bare.cost(params, phi(x), u)), rtol=1e-12
+        )
+    traj = jnp.broadcast_to(X[0], (5, usv.dX))
+    norm = params.norm
+    std = jnp.maximum(jnp.sqrt(norm.var), config.std_floor)
+    grad = jax.grad(lambda f: bare.state_cost(params, f, 4))(phi(traj[-1]))
+    np.testing.assert_allclose(
+        float(goal_penalty(net, params, traj)), float(jnp.sum((grad * std) ** 2)), rtol=1e-12
+    )
