@@ -385,3 +385,16 @@ def test_cli_train_with_a_policy_and_bc(observed_demos, tmp_path, monkeypatch):
     assert args.func(args) == 0
     assert len(json.loads((bc_out / "summary.json").read_text())["success"]) == 2
     load_policy(bc_out / "seed_0")
+
+
+def test_obs_normaliser_floors_a_constant_dimension_relative_to_its_size():
+    """A range beam that read its maximum (60 m) in every fitting sample has no spread: the
+    relative floor gives it 10 % of its size, so a first sighting is a few σ, not 10⁴."""
+    rng = np.random.default_rng(0)
+    O = np.stack([np.full(200, 60.0), rng.normal(2.0, 0.5, 200), np.zeros(200)], axis=1)
+    norm = fit_obs_normaliser(jnp.asarray(O), 1e-3, rel_floor=0.1)
+    np.testing.assert_allclose(np.asarray(norm.std)[0], 6.0, rtol=1e-6)
+    np.testing.assert_allclose(np.asarray(norm.std)[1], O[:, 1].std(), rtol=1e-6)  # spread wins
+    np.testing.assert_allclose(np.asarray(norm.std)[2], 1e-3)  # all zero: the absolute floor
+    plain = fit_obs_normaliser(jnp.asarray(O), 1e-3)
+    np.testing.assert_allclose(np.asarray(plain.std)[0], 1e-3)

@@ -61,7 +61,8 @@ def make_bc(
         O_flat = O.reshape(-1, dO)
         U_flat = U.reshape(-1, dU)
         w = mask.reshape(-1)
-        norm = fit_obs_normaliser(O_flat, config.network.obs_std_floor, w)
+        net = config.network
+        norm = fit_obs_normaliser(O_flat, net.obs_std_floor, w, rel_floor=net.obs_std_rel_floor)
         key_init, key_fit = jax.random.split(key)
         state: PolicyState = learner.init(policy.init(key_init, norm))
         prec = jnp.broadcast_to(jnp.eye(dU, dtype=U.dtype), (U_flat.shape[0], dU, dU))

@@ -154,7 +154,8 @@ def make_policy_phases(
             sample = lambda x0, k: sample_controller(env, ctrl, x0, k, N, smooth_sigma=smooth).X
             X = jax.vmap(sample)(X0, jax.random.split(key_samples, C))
             O = observe(X, key_obs)
-        norm = fit_obs_normaliser(O, settings.network.obs_std_floor)
+        net = settings.network
+        norm = fit_obs_normaliser(O, net.obs_std_floor, rel_floor=net.obs_std_rel_floor)
         return learner.init(policy.init(key_net, norm))
 
     def act(params):

@@ -151,10 +151,61 @@ def default(schedule: str = "v2") -> RGCLConfig:
     )
 
 
+def usv() -> RGCLConfig:
+    """The USV task (:mod:`diffgcl.algorithms.usv`): rGCL v2 on the hull with normalised actions,
+    a cost on the env's task features (range and bearing to the pole, closing speed, cross-track
+    and heading error, speed, jets; ``network.features="env"``) and a global MDGPS policy on the
+    boat's observations (noisy sensors in its training samples).
+
+    Differences from :func:`default` and why: ``init_var`` 0.01 and ``kl_step`` 1.0 (actions are
+    normalised to the actuators' ranges; DESIGN §7b measured GPS on the hull succeeding with these);
+    no goal regulariser (a window ends mid-return, not where the demonstrator wants to stay) and
+    no monotonic regulariser (the cost of passing a pole rises along a demo by nature)."""
+    from diffgcl.algorithms.mdgps import PolicySettings
+    from diffgcl.policies.mdgps import SStepConfig
+    from diffgcl.policies.network import PolicyConfig
+
+    return RGCLConfig(
+        schedule="v2",
+        iterations=30,
+        gps=GPSConfig(num_samples=5, kl_step=1.0, init_var=0.01, gauss_newton=True, maxent=False),
+        network=CostNetworkConfig(
+            hidden=(),
+            n_features=24,
+            action_weight=0.3,
+            learn_action_weight=False,
+            features="env",
+        ),
+        gcl=GCLConfig(
+            n_steps=40,
+            pretrain_steps=300,
+            demo_batch=1,
+            sample_batch=10,
+            learning_rate=1e-3,
+            fusion=True,
+            demos_in_partition=True,
+            lcr_weight=1e-2,
+            mono_weight=0.0,
+            goal_weight=0.0,
+        ),
+        sample_source="buffer",
+        buffer_controllers=20,
+        pretrain=True,
+        pretrain_with_samples=True,
+        freeze_last=5,
+        policy=PolicySettings(
+            network=PolicyConfig(hidden=(64, 64), init_var=0.01, obs_std_rel_floor=0.1),
+            s_step=SStepConfig(n_steps=300, batch_size=256, learning_rate=1e-3),
+            obs_noise=True,
+        ),
+    )
+
+
 PRESETS: dict[str, Callable[..., RGCLConfig]] = {
     "paper_v1": paper_v1,
     "paper_v2": paper_v2,
     "default": default,
+    "usv": usv,
 }
 
 

@@ -21,6 +21,7 @@ SUBCOMMAND_MODULES: tuple[str, ...] = (
     "diffgcl.cli.rgcl",
     "diffgcl.cli.bags",
     "diffgcl.cli.policy",
+    "diffgcl.cli.usv",
 )
 
 

@@ -22,10 +22,15 @@ Observation (what the policy sees; the cost learns on the full state):
 * ``"radar"`` — the same without the LiDAR beams (the seed's set 1 had no LiDAR); dO = 22;
 * ``"ranges"`` — the ablation without course information: ranges and ν only; dO = 51.
 
-Ranges come from :func:`pole_ranges`, the exact intersection of the layout's horizontal rays with
-the pole (a vertical capsule, i.e. a circle at mast height) — the same numbers as ``mjx.ray`` in
-the hull's MJCF scene (tested), at a fraction of the cost, which matters when the policy's
-observations are needed at every sample state and differentiated for its linearisation.
+Ranges are what ingestion makes of the boat's recorded sensors (:class:`~diffgcl.sim.sensors.
+PoleSensorModel`, :func:`~diffgcl.sim.sensors.pole_beams`), so that a policy trained on them
+reads demos' observations alike: the LiDAR beams read the pole's scan returns as discs (about
+0.25 m nearer than its surface), the radar beams a point target at the pole's centre in the one
+sector that holds it; ``obs(x, key)`` draws their noise, dropouts and missed detections. The
+noise-free beams are differentiable in the state where they see the pole (MDGPS linearises the
+policy through them). :func:`pole_ranges`, the exact intersection of the layout's rays with the
+pole (the same numbers as ``mjx.ray`` in the hull's MJCF scene, tested), stays as the reference
+geometry.
 
 Success (:meth:`UsvEnv.success`): the hull outline never touches the pole, and at the end the boat
 is back on course (cross-track below ``course_tolerance``, heading error below
@@ -50,7 +55,13 @@ from diffgcl.envs.hull import (
 )
 from diffgcl.sim import hull as hull_sim
 from diffgcl.sim.hull import HullParams
-from diffgcl.sim.sensors import SensorLayout, add_range_noise
+from diffgcl.sim.sensors import (
+    PoleSensorModel,
+    SensorLayout,
+    circle_entry,
+    noisy_pole_beams,
+    pole_beams,
+)
 from diffgcl.types import Array, PRNGKey
 
 IX_RADIUS = 10
@@ -59,28 +70,28 @@ OBSERVATIONS = ("full", "radar", "ranges")
 STATE_NAMES = (*hull_sim.STATE_NAMES, "pole_radius")
 
 
+def pole_in_hull_frame(x: Array) -> Array:
+    """[2] the pole's centre in the hull frame (x forward, y to port; m) of hull state ``x``."""
+    psi = x[hull_sim.IX_PSI]
+    c, s = jnp.cos(psi), jnp.sin(psi)
+    rel = x[hull_sim.SL_OBS] - x[:2]
+    return jnp.stack([c * rel[0] + s * rel[1], -s * rel[0] + c * rel[1]])
+
+
 def pole_ranges(layout: SensorLayout, x: Array, radius: Array) -> Array:
-    """Noise-free beam ranges [num_beams] of the layout from hull state ``x`` (its first 10
-    entries) to a pole of ``radius`` at the state's obstacle position.
+    """Exact beam ranges [num_beams] of the layout from hull state ``x`` (its first 10 entries)
+    to a pole of ``radius`` at the state's obstacle position: the reference geometry.
 
     Each ray leaves the mast (``layout.origin`` in the hull frame) horizontally; its distance to
     the pole is the entry point into the pole's circle (0 from inside), a beam reads its shortest
     ray, and a beam with no hit reads its maximum range (as :func:`~diffgcl.sim.sensors.
-    range_readings` does with ``mjx.ray``).
+    range_readings` does with ``mjx.ray``). The observation uses :class:`~diffgcl.sim.sensors.
+    PoleSensorModel` instead (what ingestion makes of the recorded sensors).
     """
-    psi = x[hull_sim.IX_PSI]
-    c, s = jnp.cos(psi), jnp.sin(psi)
-    R = jnp.stack([jnp.stack([c, -s]), jnp.stack([s, c])])
-    origin = x[:2] + R @ jnp.asarray(layout.origin[:2], x.dtype)
-    dirs = jnp.asarray(layout.ray_directions[:, :2], x.dtype) @ R.T  # [num_rays, 2] world
-    rel = x[hull_sim.SL_OBS] - origin
-    along = dirs @ rel
-    lateral2 = jnp.sum(rel**2) - along**2
-    slack = radius**2 - lateral2
-    hit = (slack >= 0.0) & (along + jnp.sqrt(jnp.maximum(slack, 0.0)) >= 0.0)
-    half_chord = jnp.sqrt(jnp.where(hit, jnp.maximum(slack, 1e-12), 1.0))
-    dist = jnp.where(hit, jnp.maximum(along - half_chord, 0.0), jnp.inf)
-    beams = layout.beams_from_rays(dist)
+    pole = pole_in_hull_frame(x)
+    origin = jnp.asarray(layout.origin[:2], x.dtype)
+    dirs = jnp.asarray(layout.ray_directions[:, :2], x.dtype)
+    beams = layout.beams_from_rays(circle_entry(origin, dirs, pole, radius))
     return jnp.minimum(beams, jnp.asarray(layout.max_ranges, x.dtype))
 
 
@@ -98,10 +109,12 @@ class UsvEnv:
     action_offset: Array  # [2] physical command at ũ = 0
     action_scale: Array  # [2] physical command per unit of ũ
     observation: str = "full"
+    sensors: PoleSensorModel = PoleSensorModel()
     weights: HullCostWeights = HullCostWeights()
     horizon: int = 240
     course_tolerance: float = 5.0
     heading_tolerance: float = float(np.deg2rad(20.0))
+    return_heading_tolerance: float = float(np.deg2rad(45.0))
     name: str = "usv"
     dX: int = DX
     dU: int = hull_sim.DU
@@ -135,16 +148,18 @@ class UsvEnv:
         nxt = hull_sim.hull_step(self.params, x[:IX_RADIUS], self.command(u), self.model)
         return jnp.concatenate([nxt, x[IX_RADIUS:]])
 
-    def ranges(self, x: Array) -> Array:
-        """Noise-free beam ranges [num_beams] (LiDAR then radar)."""
-        return pole_ranges(self.layout, x[:IX_RADIUS], x[IX_RADIUS])
+    def ranges(self, x: Array, key: PRNGKey | None = None) -> Array:
+        """Beam ranges [num_beams] (LiDAR then radar) as ingestion reads them from the recorded
+        sensors (:func:`~diffgcl.sim.sensors.pole_beams`); ``key`` draws their noise."""
+        pole = pole_in_hull_frame(x[:IX_RADIUS])
+        if key is None:
+            return pole_beams(self.sensors, self.layout, pole, x[IX_RADIUS])
+        return noisy_pole_beams(self.sensors, self.layout, pole, x[IX_RADIUS], key)
 
     def obs(self, x: Array, key: PRNGKey | None = None) -> Array:
-        """x: [11] -> o: [dO] (see the module docstring); ``key`` adds the layout's range noise."""
+        """x: [11] -> o: [dO] (see the module docstring); ``key`` adds the sensors' noise."""
         check_shape("usv.obs", "x", x, (self.dX,))
-        r = self.ranges(x)
-        if key is not None:
-            r = add_range_noise(r, self.layout, key)
+        r = self.ranges(x, key)
         psi = x[hull_sim.IX_PSI]
         nu = hull_sim.body_velocity(x[:IX_RADIUS])
         heading = jnp.stack([jnp.sin(psi), jnp.cos(psi)])
@@ -182,6 +197,17 @@ class UsvEnv:
         """Cross-track and heading error within the tolerances (bool)."""
         return on_course(x, 0.0, self.course_tolerance, self.heading_tolerance)
 
+    def returned_to_course(self, X: Array) -> Array:
+        """X: [T+1, 11] -> bool: after the closest approach to the pole the boat comes back onto
+        the course line (cross-track below ``course_tolerance``) heading along it within
+        ``return_heading_tolerance`` (human demonstrators cross back at 20–40° and settle later
+        than a pass window lasts)."""
+        k = jnp.argmin(jax.vmap(self.clearance)(X))
+        on = jax.vmap(
+            lambda x: on_course(x, 0.0, self.course_tolerance, self.return_heading_tolerance)
+        )(X)
+        return jnp.any(on & (jnp.arange(X.shape[0]) >= k))
+
     def success(self, X: Array) -> Array:
         """X: [T+1, 11] -> bool: no collision at any state, back on course at the end."""
         no_collision = jnp.min(jax.vmap(self.clearance)(X)) > 0.0
@@ -189,7 +215,8 @@ class UsvEnv:
 
     def metrics(self, X: Array) -> dict[str, Array]:
         """X: [T+1, 11] -> min clearance (m), final cross-track (m) and heading error (rad),
-        largest cross-track excursion (m), collision, back on course, the side passed at the
+        largest cross-track excursion (m), collision, back on course at the end, returned to the
+        course after the pass (:meth:`returned_to_course`), the side passed at the
         closest approach (+1: the boat is to the left of the pole, y above it, i.e. it swerved to
         port; −1: to starboard) and success."""
         clearance = jax.vmap(self.clearance)(X)
@@ -203,6 +230,7 @@ class UsvEnv:
             "max_cross_track": jnp.max(jnp.abs(X[:, hull_sim.IX_PY])),
             "collision": clearance[k] <= 0.0,
             "back_on_course": self.back_on_course(X[-1]),
+            "returned_to_course": self.returned_to_course(X),
             "side": side,
             "success": self.success(X),
         }
@@ -289,13 +317,15 @@ def make_usv_env(
     observation: str = "full",
     weights: HullCostWeights | None = None,
     action_scale=None,
+    sensors: PoleSensorModel | None = None,
 ) -> UsvEnv:
     """The USV task env with conditions ``x0: [C, 11]`` (task frame; see
     :func:`diffgcl.data.task_frame.usv_conditions`; default :func:`default_conditions`), hull
     ``params`` (default nominal; e.g. identified from bags), sensor ``layout``, ``cruise_speed``
     (m/s; the thrust that holds it is the action offset), horizon T, the policy's
-    ``observation`` set (``OBSERVATIONS``).
-    ``action_scale`` defaults to [max thrust, max nozzle angle]."""
+    ``observation`` set (``OBSERVATIONS``), the recorded ``sensors`` behind the observed beams
+    (default: the synthetic Odin-like ones). ``action_scale`` defaults to [max thrust, max
+    nozzle angle]."""
     if observation not in OBSERVATIONS:
         raise ValueError(f"usv: observation {observation!r}; choose one of {OBSERVATIONS}")
     dtype = jnp.zeros(()).dtype
@@ -323,6 +353,7 @@ def make_usv_env(
         action_offset=jnp.asarray([thrust, 0.0], dtype),
         action_scale=jnp.asarray(scale, dtype),
         observation=observation,
+        sensors=sensors or PoleSensorModel(),
         weights=weights or HullCostWeights(),
         horizon=horizon,
     )

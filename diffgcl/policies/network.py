@@ -43,13 +43,17 @@ class PolicyConfig:
 
     hidden: widths of the hidden layers (GPS's examples: 2 × 40–100); activation: one of
     ``ACTIVATIONS``; obs_std_floor: lower bound of the normaliser's standard deviation (GPS:
-    1e-3, in the observation's own units); init_var: action variance of a new policy (usually the
-    GPS ``init_var`` of the controllers it starts from).
+    1e-3, in the observation's own units); obs_std_rel_floor: a second lower bound, this fraction
+    of each dimension's root mean square (a range beam that read its maximum in every fitting
+    sample has no spread: with an absolute floor of 1e-3 m, the first time it sees something
+    its input to the network is −10⁴ σ and the policy's action explodes); init_var: action
+    variance of a new policy (usually the GPS ``init_var`` of the controllers it starts from).
     """
 
     hidden: tuple[int, ...] = (64, 64)
     activation: str = "relu"
     obs_std_floor: float = 1e-3
+    obs_std_rel_floor: float = 0.0
     init_var: float = 0.1
 
     def __post_init__(self):
@@ -59,6 +63,8 @@ class PolicyConfig:
             )
         if not self.init_var > 0 or not self.obs_std_floor > 0:
             raise ValueError("PolicyConfig: init_var and obs_std_floor must be positive")
+        if not self.obs_std_rel_floor >= 0:
+            raise ValueError("PolicyConfig: obs_std_rel_floor must be non-negative")
 
 
 @struct.dataclass
@@ -103,15 +109,20 @@ class MeanNetwork(nn.Module):
         return out(h)
 
 
-def fit_obs_normaliser(O: Array, std_floor: float, mask: Array | None = None) -> ObsNormaliser:
+def fit_obs_normaliser(
+    O: Array, std_floor: float, mask: Array | None = None, rel_floor: float = 0.0
+) -> ObsNormaliser:
     """Statistics of observations ``O: [..., dO]`` (``mask: [...]``, 1 = use; default all):
-    per-dimension mean and standard deviation, the latter floored at ``std_floor``."""
+    per-dimension mean and standard deviation, the latter floored at ``std_floor`` and at
+    ``rel_floor`` times the dimension's root mean square."""
     O = O.reshape(-1, O.shape[-1])
     w = jnp.ones(O.shape[0], O.dtype) if mask is None else mask.reshape(-1).astype(O.dtype)
     n = jnp.maximum(w.sum(), 1.0)
     mean = (w[:, None] * O).sum(0) / n
     var = (w[:, None] * (O - mean) ** 2).sum(0) / n
-    return ObsNormaliser(mean=mean, std=jnp.maximum(jnp.sqrt(var), std_floor))
+    rms = jnp.sqrt((w[:, None] * O**2).sum(0) / n)
+    floor = jnp.maximum(std_floor, rel_floor * rms)
+    return ObsNormaliser(mean=mean, std=jnp.maximum(jnp.sqrt(var), floor))
 
 
 @dataclass(frozen=True)

@@ -228,3 +228,168 @@ def ranges_from_points(
         entry = np.maximum(along - half_chord, 0.0)
         ray = np.minimum(ray, np.where(hit, entry, np.inf).min(axis=1))
     return np.minimum(layout.beams_from_rays(ray), max_range)
+
+
+# --------------------------------------------------------------------------------------------
+# A pole as ingestion's beams see it (the simulated observation of the USV task)
+# --------------------------------------------------------------------------------------------
+
+
+def circle_entry(origin: Array, dirs: Array, centre: Array, radius: Array, window=None) -> Array:
+    """Distance along each ray to a circle: [R] for rays from ``origin: [2]`` along unit
+    ``dirs: [R, 2]`` into the circle (``centre: [2]``, ``radius``); 0 from inside, inf where the
+    ray misses it or the circle lies behind.
+
+    ``window = (lo, hi)`` (default ``(−radius, radius)``) narrows the silhouette: a ray hits only
+    if it passes the centre at a signed offset s (m, positive: the ray passes to the left of the
+    centre, looking along it) with lo ≤ s ≤ hi; where it hits, it still reads the circle.
+    Differentiable where the rays hit.
+    """
+    rel = centre - origin
+    along = dirs @ rel
+    offset = dirs[:, 1] * rel[0] - dirs[:, 0] * rel[1]
+    lo, hi = (-radius, radius) if window is None else window
+    slack = radius**2 - offset**2
+    hit = (offset >= lo) & (offset <= hi) & (slack >= 0.0)
+    half_chord = jnp.sqrt(jnp.where(hit, jnp.maximum(slack, 1e-12), 1.0))
+    hit = hit & (along + half_chord >= 0.0)
+    return jnp.where(hit, jnp.maximum(along - half_chord, 0.0), jnp.inf)
+
+
+@dataclasses.dataclass(frozen=True)
+class PoleSensorModel:
+    """The recorded sensors behind ingestion's beams of a pole (see :func:`pole_beams`).
+
+    LiDAR: ``lidar_scan_step`` (rad) between returns; ``lidar_noise_std`` (m), the range noise
+    of a beam that sees the pole, grows with the spacing b of the returns on the pole as
+    sqrt(lidar_noise_std² + (lidar_spacing_noise · b)²); ``lidar_dropout``, the probability
+    that one return is missing. Radar: ``radar_range_std`` (m) and ``radar_bearing_std`` (rad),
+    the noise of its return from the pole; ``radar_detection``, the probability that the
+    filtered radar holds the pole at a step.
+
+    The defaults are the synthetic Odin-like sensors (:class:`diffgcl.data.synth.SensorModel`:
+    720 returns per turn, 3 cm, 2 % dropouts; radar 1.5 m, 1°, Pd 0.9) read through the default
+    topic map's clutter filter (a return kept from its second sighting in 1 of 2 sweeps,
+    coasted through one miss: held in Pd (1 − (1 − Pd)²)(2 − Pd) = 98 % of the sweeps), with
+    ``lidar_spacing_noise`` measured against ingestion (``tests/test_usv_sensors.py``).
+    """
+
+    lidar_scan_step: float = float(2 * np.pi / 720)
+    lidar_noise_std: float = 0.03
+    lidar_spacing_noise: float = 0.14
+    lidar_dropout: float = 0.02
+    radar_range_std: float = 1.5
+    radar_bearing_std: float = float(np.deg2rad(1.0))
+    radar_detection: float = 0.98
+    radar_mount: tuple[float, float] = (0.0, 0.0)
+    pose_position_std: float = 0.05
+    pose_heading_std: float = 0.0035
+
+
+def _from_origin(layout: SensorLayout, pole: Array) -> tuple[Array, Array]:
+    """(pole − origin [2], its length) in the hull frame."""
+    rel = pole - jnp.asarray(layout.origin[:2], pole.dtype)
+    return rel, jnp.sqrt(jnp.maximum(rel @ rel, 1e-12))
+
+
+def lidar_pole_ranges(
+    model: PoleSensorModel, layout: SensorLayout, pole: Array, radius: Array, returns=None
+) -> Array:
+    """[lidar_beams] LiDAR beams of a pole of ``radius`` (``pole: [2]``, its centre in the hull
+    frame, m) as ingestion reads them from the scan's returns (:func:`ranges_from_points`).
+
+    The returns sample the pole's near surface every b = d · ``lidar_scan_step`` across the line
+    of sight (d: distance from the sensor), each a disc of ρ = ``layout.point_radius``. A ray
+    meets the disc of a return δ to its side sqrt(ρ² − δ²) before the surface; δ uniform on
+    [0, b/2] gives ρ̄ = ρ − b²/(24ρ) (first order in δ²/ρ²): where a ray hits, it reads a circle
+    of radius R + ρ̄. A ray hits when it passes within ρ of the outermost returns,
+    ``returns = (first, last)``: their offsets (m) to the left of the centre across the line of
+    sight. Default: the mean, ±(R − b/2), each flank's outermost return half a spacing inside
+    the silhouette (:func:`noisy_pole_beams` draws them). Noise-free, differentiable in
+    ``pole`` and ``radius`` where the beams see the pole.
+    """
+    rel, dist = _from_origin(layout, pole)
+    rho = layout.point_radius
+    spacing = dist * model.lidar_scan_step
+    surface = radius + jnp.maximum(rho - spacing**2 / (24.0 * rho), 0.0)
+    if returns is None:
+        half = jnp.maximum(radius - 0.5 * spacing, -rho) + rho
+        window = (-half, half)
+    else:
+        first, last = returns
+        empty = first > last  # every return on the pole dropped
+        window = (jnp.where(empty, jnp.inf, first - rho), jnp.where(empty, -jnp.inf, last + rho))
+    dirs = jnp.asarray(layout.ray_directions[: layout.lidar_beams * layout.lidar_rays_per_beam, :2])
+    origin = jnp.asarray(layout.origin[:2], pole.dtype)
+    rays = circle_entry(origin, dirs.astype(pole.dtype), pole, surface, window)
+    beams = rays.reshape(layout.lidar_beams, layout.lidar_rays_per_beam).min(axis=1)
+    return jnp.minimum(beams, layout.lidar_range)
+
+
+def radar_pole_ranges(layout: SensorLayout, pole: Array) -> Array:
+    """[radar_beams] radar beams of a pole (``pole: [2]``, its centre in the hull frame, m) as
+    ingestion reads them (:func:`diffgcl.data.scans.radar_sector_ranges`): the radar returns
+    the pole's centre (a point target, not its surface); the beam whose sector holds its
+    bearing from the layout's origin reads its distance, capped at the radar range, the others
+    the radar range. Noise-free; differentiable in ``pole`` (the sector is piecewise constant).
+    """
+    rel, dist = _from_origin(layout, pole)
+    w = layout.radar_width
+    sector = jnp.mod(jnp.floor((jnp.arctan2(rel[1], rel[0]) + 0.5 * w) / w), layout.radar_beams)
+    beams = jnp.where(jnp.arange(layout.radar_beams) == sector, dist, jnp.inf)
+    return jnp.minimum(beams, layout.radar_range)
+
+
+def pole_beams(model: PoleSensorModel, layout: SensorLayout, pole: Array, radius: Array) -> Array:
+    """[num_beams] noise-free beams (LiDAR then radar) of a pole of ``radius`` at ``pole: [2]``
+    (its centre in the hull frame): :func:`lidar_pole_ranges`, :func:`radar_pole_ranges`."""
+    return jnp.concatenate(
+        [lidar_pole_ranges(model, layout, pole, radius), radar_pole_ranges(layout, pole)]
+    )
+
+
+def noisy_pole_beams(
+    model: PoleSensorModel, layout: SensorLayout, pole: Array, radius: Array, key: jax.Array
+) -> Array:
+    """[num_beams] one draw of :func:`pole_beams` with the noise of ingestion's beams.
+
+    LiDAR: the returns' phase along the pole (uniform: the first return within one spacing b of
+    the right flank, then one every b), each outermost return dropped with probability
+    ``lidar_dropout`` (the flank one spacing narrower; no return left: the pole is not seen),
+    and Gaussian range noise (see :class:`PoleSensorModel`) on the beams that see it; dropouts
+    inside the silhouette are left out (another return of the beam still reads the pole). Radar:
+    range (at least 1 m, as the generator's) and bearing noise of the return (near a sector edge
+    the neighbouring beam reads it), and with probability 1 − ``radar_detection`` no return
+    (every beam reads the radar range). Before both, the pose error of the state estimate that
+    ingestion moves each scan with (``pose_position_std``, ``pose_heading_std``). Each call is
+    one independent draw: the ingested radar holds one sweep for 2 s, so its error is
+    correlated from step to step where this one is not.
+    """
+    k_pose, k_phase, k_drop, k_lidar, k_radar, k_seen = jax.random.split(key, 6)
+    dtype = pole.dtype
+    e = jax.random.normal(k_pose, (3,), dtype)
+    c, s = jnp.cos(model.pose_heading_std * e[2]), jnp.sin(model.pose_heading_std * e[2])
+    pole = jnp.stack([c * pole[0] - s * pole[1], s * pole[0] + c * pole[1]])
+    pole = pole + model.pose_position_std * e[:2]
+    _, dist = _from_origin(layout, pole)
+    spacing = dist * model.lidar_scan_step
+    phase = jax.random.uniform(k_phase, (), dtype)
+    first = -radius + phase * spacing
+    last = first + spacing * jnp.floor((radius - first) / spacing)
+    dropped = jax.random.bernoulli(k_drop, model.lidar_dropout, (2,)).astype(dtype)
+    single = last - first < 0.5 * spacing  # one return on the pole: one draw drops it
+    dropped_last = jnp.where(single, dropped[0], dropped[1])
+    returns = (first + dropped[0] * spacing, last - dropped_last * spacing)
+    lidar = lidar_pole_ranges(model, layout, pole, radius, returns)
+    std = jnp.sqrt(model.lidar_noise_std**2 + (model.lidar_spacing_noise * spacing) ** 2)
+    noisy = lidar + std * jax.random.normal(k_lidar, lidar.shape, dtype)
+    lidar = jnp.where(lidar < layout.lidar_range, jnp.clip(noisy, 0.0, layout.lidar_range), lidar)
+    z = jax.random.normal(k_radar, (2,), dtype)
+    mount = jnp.asarray(model.radar_mount, dtype)
+    rel = pole - mount
+    r = jnp.sqrt(jnp.maximum(rel @ rel, 1e-12)) + model.radar_range_std * z[0]
+    bearing = jnp.arctan2(rel[1], rel[0]) + model.radar_bearing_std * z[1]
+    echo = mount + jnp.maximum(r, 1.0) * jnp.stack([jnp.cos(bearing), jnp.sin(bearing)])
+    radar = radar_pole_ranges(layout, echo)
+    seen = jax.random.uniform(k_seen, (), dtype) < model.radar_detection
+    return jnp.concatenate([lidar, jnp.where(seen, radar, layout.radar_range)])

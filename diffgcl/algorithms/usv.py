@@ -1,0 +1,574 @@
+"""USV obstacle avoidance learned from bags, end to end (issue 13; DESIGN §7b).
+
+The pieces, each a function the experiment (``experiments/usv_avoidance.py``) and the CLI
+(``diffgcl usv``) chain:
+
+1. :func:`builtin_bags` — the Odin-like synthetic bags (:mod:`diffgcl.data.synth`), written once
+   into the cache; a user brings their own bags and topic map instead;
+2. ingestion (:func:`diffgcl.data.ingest.ingest_bags`), then hull identification
+   (:func:`diffgcl.data.sysid.identify`) on the demonstrations;
+3. :func:`task_windows` — every demo in its task frame (:mod:`diffgcl.data.task_frame`) and cropped
+   to a window of fixed horizon around its closest approach to the pole;
+4. :func:`make_task_env` and :func:`usv_demo_set` — the USV task env
+   (:class:`diffgcl.envs.usv.UsvEnv`) on the identified hull with one condition per demo (its
+   start state and pole), and the demos in that env's layout (state with the pole's radius,
+   normalised actions, the policy's observations built from the *recorded* ranges);
+5. rGCL (:mod:`diffgcl.algorithms.rgcl`, :func:`diffgcl.algorithms.presets.usv`) learns the cost
+   on task features and the MDGPS policy on the observations; references: MDGPS with the
+   hand-written cost (:func:`train_expert`) and behaviour cloning (:mod:`diffgcl.algorithms.bc`);
+6. :func:`heldout_starts` and :func:`evaluate_policy_batch` — situations none of the demos had
+   (pole distance, the boat's lateral offset and heading, pole radius and speed drawn from the
+   demos' ranges), rolled out on the *true* hull with sensor noise; per episode: collision, minimum
+   clearance, back on course, side passed, path distance to the nearest demo.
+
+The demonstrators' own controller for GCL's fusion weights is fitted once on all windows pooled
+(one human policy, time-aligned by the closest approach), not per condition: with one demo per
+condition a per-condition fit would have no residual to give it a covariance.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffgcl.algorithms.rgcl import DemoBatch
+from diffgcl.data.demos import DemoError, DemoSet
+from diffgcl.envs.usv import UsvEnv, make_usv_env
+from diffgcl.sim import hull as hull_sim
+from diffgcl.types import Array, PRNGKey
+
+DEFAULT_POLE_RADIUS = 0.5  # m, used when neither the episode nor a manifest gives one
+
+
+@dataclass(frozen=True)
+class UsvTaskConfig:
+    """How demos become the USV task.
+
+    before / after: steps kept before and after the closest approach (T = before + after);
+    sets: the bag sets whose episodes are used (set 1 of the seed has no LiDAR, set 2 has it);
+    observation: the policy's observation set (:data:`diffgcl.envs.usv.OBSERVATIONS`);
+    max_conditions: use at most this many demos (None: all); default_pole_radius: m.
+    """
+
+    before: int = 120
+    after: int = 180
+    sets: tuple[str, ...] = ("2",)
+    observation: str = "full"
+    max_conditions: int | None = None
+    default_pole_radius: float = DEFAULT_POLE_RADIUS
+
+    @property
+    def horizon(self) -> int:
+        return self.before + self.after
+
+
+# ---- bags and demos -----------------------------------------------------------------------------
+
+
+BUILTIN_SYNTH = {
+    # The seed's Odin sets (19 episodes without LiDAR, 47 with), each recorded until the boat is
+    # back on its course line and has held it a while (end margin past the pole), so that a window
+    # around the pass holds the return too.
+    "full": dict(end_margin_m=(170.0, 230.0), max_duration_s=160.0),
+    "fast": dict(episodes=(3, 5), approach_m=(110.0, 130.0), end_margin_m=(120.0, 140.0)),
+}
+
+
+def builtin_bags(*, fast: bool = False, verbose: bool = True) -> Path:
+    """The synthetic Odin-like bag set (the seed's layout: set 1, 19 episodes without LiDAR; set 2,
+    47 with it; ``fast``: 3 + 5 short episodes), generated once into the cache."""
+    from diffgcl.data.synth import SynthConfig, synthesize
+    from diffgcl.runtime import cache_root
+
+    name = "fast" if fast else "full"
+    folder = cache_root() / "bags" / f"odin-usv-{name}"
+    if not (folder / "manifest.json").is_file():
+        if verbose:
+            print(f"writing the synthetic Odin-like bags into {folder}")
+        synthesize(folder, SynthConfig(**BUILTIN_SYNTH[name]), overwrite=True)
+    return folder
+
+
+def load_bag_demos(folder: Path, topics: Path | None = None, *, verbose: bool = True) -> DemoSet:
+    """Every bag below ``folder`` ingested with the topic map ``topics`` (default: the Odin-like
+    one). Nothing is written (a user's folder is never touched)."""
+    from diffgcl.data.ingest import ingest_bags
+    from diffgcl.data.topics import load_topic_map
+
+    paths = bag_paths(folder)
+    if verbose:
+        print(f"ingesting {len(paths)} bags from {folder}")
+    return ingest_bags(paths, load_topic_map(topics))
+
+
+def builtin_demos(*, fast: bool = False, verbose: bool = True) -> tuple[DemoSet, Path]:
+    """The built-in bags (:func:`builtin_bags`) ingested, cached beside them; returns the demos
+    and the bag folder (whose ``manifest.json`` has the generator's truth)."""
+    folder = builtin_bags(fast=fast, verbose=verbose)
+    cached = folder.parent / f"{folder.name}-demos"
+    if (cached / "demos.npz").is_file():
+        return DemoSet.load(cached), folder
+    demos = load_bag_demos(folder, verbose=verbose)
+    demos.save(cached)
+    return demos, folder
+
+
+def bag_paths(folder: Path) -> list[Path]:
+    """Every bag below ``folder`` (ROS1 ``.bag`` files and ROS2 bag folders), sorted."""
+    folder = Path(folder)
+    found = sorted(folder.rglob("*.bag")) + sorted(
+        m.parent for m in folder.rglob("metadata.yaml") if m.parent != folder
+    )
+    if not found:
+        raise DemoError(f"{folder}: no ROS bags below this folder")
+    return found
+
+
+def pole_radii(demos: DemoSet, default: float, manifest: Path | None = None) -> np.ndarray:
+    """The pole radius of each episode [N] (m): from the episode's metadata (``pole_radius`` or
+    ``radius``, e.g. a key of the start marker), else from a synthetic set's ``manifest.json``
+    (matched by bag file and start time), else ``default``."""
+    truth = {}
+    if manifest is not None and Path(manifest).is_file():
+        for e in json.loads(Path(manifest).read_text())["episodes"]:
+            truth[(Path(e["bag"]).name, round(float(e["t_start"]), 1))] = e["profile"][
+                "pole_radius"
+            ]
+    radii = []
+    for meta in demos.episodes:
+        value = meta.get("pole_radius", meta.get("radius"))
+        if value is None:
+            value = truth.get((Path(meta.get("source", "")).name, round(meta["t_start"], 1)))
+        radii.append(float(default if value is None else value))
+    return np.asarray(radii)
+
+
+def task_windows(demos: DemoSet, config: UsvTaskConfig) -> DemoSet:
+    """The chosen sets' episodes in the task frame, cropped around the pole pass (module
+    docstring); episodes without a full window are left out with a warning."""
+    from diffgcl.data.task_frame import pass_windows, to_task_frame
+
+    sets = {str(e.get("set")) for e in demos.episodes}
+    keep = [i for i, e in enumerate(demos.episodes) if str(e.get("set")) in config.sets]
+    if not keep:
+        raise DemoError(f"demos: no episode of sets {config.sets} (the data have sets {sets})")
+    chosen = to_task_frame(demos.subset(np.asarray(keep)))
+    windows = pass_windows(chosen, config.before, config.after)
+    if config.max_conditions is not None:
+        windows = windows.subset(slice(0, config.max_conditions))
+    return windows
+
+
+def cruise_speed_of(windows: DemoSet) -> float:
+    """The demos' typical speed over ground (median over all valid steps), m/s."""
+    speed = np.hypot(windows.X[..., hull_sim.IX_VX], windows.X[..., hull_sim.IX_VY])
+    return float(np.median(speed[windows.mask > 0]))
+
+
+def make_task_env(
+    windows: DemoSet,
+    radii: np.ndarray,
+    params,
+    config: UsvTaskConfig,
+    *,
+    cruise_speed: float | None = None,
+    horizon: int | None = None,
+) -> UsvEnv:
+    """The USV env on hull ``params`` with one condition per window (its first state and pole)."""
+    x0 = np.concatenate([windows.X[:, 0, : hull_sim.DX], radii[:, None]], axis=1)
+    speed = cruise_speed_of(windows) if cruise_speed is None else cruise_speed
+    return make_usv_env(
+        x0,
+        params=params,
+        cruise_speed=speed,
+        horizon=config.horizon if horizon is None else horizon,
+        observation=config.observation,
+    )
+
+
+def usv_observations(env: UsvEnv, X: np.ndarray, O_hull: np.ndarray) -> np.ndarray:
+    """The policy's observations [..., dO] in ``env``'s layout from states ``X: [..., 11]`` and
+    the *recorded* observations in the hull layout ``O_hull: [..., 53]`` (ranges, sin ψ, cos ψ,
+    ν): the ranges are what the bag's sensors read, the rest comes from the state."""
+    n_beams = env.layout.num_beams
+    ranges = O_hull[..., :n_beams]
+    psi = X[..., hull_sim.IX_PSI]
+    heading = np.stack([np.sin(psi), np.cos(psi)], axis=-1)
+    nu = O_hull[..., n_beams + 2 : n_beams + 5]
+    cross = X[..., hull_sim.IX_PY : hull_sim.IX_PY + 1]
+    if env.observation == "ranges":
+        return np.concatenate([ranges, nu], axis=-1)
+    if env.observation == "radar":
+        ranges = ranges[..., env.layout.lidar_beams :]
+    return np.concatenate([ranges, heading, nu, cross], axis=-1)
+
+
+def usv_demo_set(env: UsvEnv, windows: DemoSet, radii: np.ndarray) -> DemoSet:
+    """The windows in ``env``'s layout: states with the pole radius [N, T+1, 11], normalised
+    actions [N, T, 2], the policy's observations [N, T+1, dO] from the recorded ranges, and each
+    episode its own condition (``condition = i``)."""
+    N, T1, _ = windows.X.shape
+    X = np.concatenate(
+        [windows.X[..., : hull_sim.DX], np.broadcast_to(radii[:, None, None], (N, T1, 1))], -1
+    )
+    offset, scale = np.asarray(env.action_offset), np.asarray(env.action_scale)
+    U = (windows.U - offset) / scale
+    O = usv_observations(env, X, windows.O)
+    episodes = tuple(
+        {**e, "condition": i, "pole_radius": float(radii[i])}
+        for i, e in enumerate(windows.episodes)
+    )
+    return DemoSet(X=X, U=U, O=O, mask=windows.mask, dt=windows.dt, env="usv", episodes=episodes)
+
+
+def demo_batch_pooled(demos: DemoSet, dtype=None) -> DemoBatch:
+    """A :class:`~diffgcl.algorithms.rgcl.DemoBatch` with one demo per condition [C, 1, ...] and
+    the demonstrators' controller fitted on all demos pooled, shared by every condition."""
+    from diffgcl.costs.demo_controller import fit_demo_controller
+
+    dtype = dtype or jnp.zeros(()).dtype
+    X = jnp.asarray(demos.X, dtype)
+    U = jnp.asarray(demos.U, dtype)
+    pooled = jax.jit(fit_demo_controller)(X, U)
+    C = X.shape[0]
+    controller = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), pooled)
+    return DemoBatch(X=X[:, None], U=U[:, None], controller=controller)
+
+
+# ---- held-out situations and evaluation ---------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class SituationRanges:
+    """Ranges of the held-out situations, from the demos' window starts (task frame): pole
+    distance ahead (m), the boat's lateral offset from the pole's line (m), heading (rad), speed
+    (m/s); pole radius (m)."""
+
+    distance: tuple[float, float]
+    offset: tuple[float, float]
+    heading: tuple[float, float]
+    speed: tuple[float, float]
+    radius: tuple[float, float] = (0.3, 1.0)
+
+    @classmethod
+    def of(cls, demos: DemoSet, radius=(0.3, 1.0)) -> SituationRanges:
+        x0 = demos.X[:, 0]
+        rel = x0[:, hull_sim.SL_OBS] - x0[:, :2]
+        speed = np.hypot(x0[:, hull_sim.IX_VX], x0[:, hull_sim.IX_VY])
+
+        def span(v):
+            return float(np.min(v)), float(np.max(v))
+
+        return cls(
+            distance=span(rel[:, 0]),
+            offset=span(-rel[:, 1]),
+            heading=span(x0[:, hull_sim.IX_PSI]),
+            speed=span(speed),
+            radius=radius,
+        )
+
+
+def heldout_starts(env: UsvEnv, ranges: SituationRanges, key: PRNGKey, n: int) -> Array:
+    """``n`` start states [n, 11]: each quantity drawn uniformly from its range independently
+    (so no start equals a demo's), the boat at (0, offset) heading ``heading``, the pole on the
+    course line ahead at ``distance``."""
+    keys = jax.random.split(key, 5)
+    dtype = env.x0.dtype
+
+    def draw(k, lo_hi):
+        return jax.random.uniform(k, (n,), dtype, *lo_hi)
+
+    names = ("distance", "offset", "heading", "speed", "radius")
+    d, off, psi, v, r = (draw(k, getattr(ranges, f)) for k, f in zip(keys, names, strict=True))
+    poles = jnp.stack([d, jnp.zeros_like(d)], axis=-1)
+    return jax.vmap(env.start_state)(poles, r, v, psi, off)
+
+
+def path_distance_to_demos(X: np.ndarray, demo_X: np.ndarray) -> np.ndarray:
+    """[B] mean distance (m) of each rollout's positions ``X: [B, T+1, 11]`` to the nearest point
+    of the nearest demo path ``demo_X: [N, T+1, 11]``, both relative to their own pole."""
+    P = X[..., :2] - X[:, :1, hull_sim.SL_OBS]
+    Q = demo_X[..., :2] - demo_X[:, :1, hull_sim.SL_OBS]
+    out = np.empty(P.shape[0])
+    for b in range(P.shape[0]):
+        d = np.linalg.norm(P[b][None, :, None, :] - Q[:, None, :, :], axis=-1)  # [N, T+1, T+1]
+        out[b] = d.min(axis=2).mean(axis=1).min()
+    return out
+
+
+def trajectory_metrics(env: UsvEnv, X) -> dict[str, np.ndarray]:
+    """:meth:`UsvEnv.metrics` of each rollout ``X: [B, T+1, 11]``, as NumPy arrays [B]."""
+    return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(env.metrics))(jnp.asarray(X)).items()}
+
+
+def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
+    """The USV figures of rollouts ``X: [B, T'+1, 11]`` against the demos ``demo_X: [N, T+1, 11]``
+    (T' ≥ T: the evaluation may run past the demos' window).
+
+    ``return_to_course_rate``: on course at the end (cross-track and heading within the env's
+    tolerances, :meth:`UsvEnv.back_on_course`); ``returned_in_window_rate``: back at the course
+    line within the demos' window (:meth:`UsvEnv.returned_to_course` on the first T+1 states, the
+    figure the demos have too); collision rate; the median minimum clearance and its ratio to the
+    demos' median; the median path distance to the nearest demo (first T+1 states); the share of
+    port passes beside the demos'."""
+    X = np.asarray(X)
+    T1 = demo_X.shape[1]
+    m = trajectory_metrics(env, X)
+    w = trajectory_metrics(env, X[:, :T1])
+    d = trajectory_metrics(env, demo_X)
+    demo_clearance = float(np.median(d["min_clearance"]))
+    clearance = float(np.median(m["min_clearance"]))
+    return {
+        "episodes": int(m["collision"].shape[0]),
+        "collision_rate": float(m["collision"].mean()),
+        "return_to_course_rate": float(m["back_on_course"].mean()),
+        "returned_in_window_rate": float(w["returned_to_course"].mean()),
+        "demo_returned_in_window_rate": float(d["returned_to_course"].mean()),
+        "success_rate": float(m["success"].mean()),
+        "min_clearance_median_m": clearance,
+        "demo_min_clearance_median_m": demo_clearance,
+        "clearance_ratio_vs_demos": clearance / demo_clearance,
+        "final_cross_track_median_m": float(np.median(m["final_cross_track"])),
+        "path_distance_to_demos_median_m": float(
+            np.median(path_distance_to_demos(X[:, :T1], demo_X))
+        ),
+        "port_share": float(np.mean(m["side"] > 0)),
+        "demo_port_share": float(np.mean(d["side"] > 0)),
+    }
+
+
+def policy_tracks(env: UsvEnv, policy, params, x0, key: PRNGKey) -> np.ndarray:
+    """Noise-free-action rollouts [B, T+1, 11] of a global policy from ``x0`` with the env's
+    sensor noise in its observations (the boat's sensors are never noise-free)."""
+    from diffgcl.eval.policy import policy_rollouts
+
+    run = jax.jit(lambda p, x, k: policy_rollouts(env, policy, p, x, k, obs_noise=True))
+    return np.asarray(run(params, jnp.asarray(x0), key).X)
+
+
+# ---- the whole run ------------------------------------------------------------------------------
+
+METHODS = ("rgcl", "expert", "bc")
+
+
+@dataclass(frozen=True)
+class UsvRunConfig:
+    """One run of the USV pipeline.
+
+    task: :class:`UsvTaskConfig`; rgcl: the rGCL + MDGPS settings (None: :func:`~diffgcl.
+    algorithms.presets.usv`); methods: of :data:`METHODS` — ``rgcl`` (learned cost + MDGPS),
+    ``expert`` (MDGPS with the hand-written cost, ``expert_iterations`` iterations), ``bc``
+    (behaviour cloning on the recorded observations); seeds: training seeds (vmapped);
+    heldout: number of held-out situations (drawn with ``heldout_seed``), each rolled out for
+    the window's horizon plus ``eval_extra`` steps (to judge the return); identify: fit the
+    hull to the demos (else the nominal hull); sysid: its settings.
+    """
+
+    task: UsvTaskConfig = UsvTaskConfig()
+    rgcl: object = None
+    methods: tuple[str, ...] = METHODS
+    seeds: tuple[int, ...] = (0,)
+    heldout: int = 256
+    heldout_seed: int = 1000
+    eval_extra: int = 150
+    expert_iterations: int = 15
+    identify: bool = True
+    sysid: object = None
+
+    def __post_init__(self):
+        unknown = set(self.methods) - set(METHODS)
+        if unknown:
+            raise ValueError(f"usv: unknown methods {sorted(unknown)}; choose from {METHODS}")
+
+
+@dataclass
+class UsvRun:
+    """What :func:`run_usv` returns: ``summary`` (JSON-ready figures), the task env on the
+    identified hull (``env``, demos' conditions) and on the true one (``env_true``, held-out
+    starts ``x0_heldout``), the demos in the task layout, and per method its policy, parameters
+    (leading seed axis) and held-out tracks [S, B, T+1, 11]; the rGCL state (``rgcl_state``)."""
+
+    summary: dict
+    env: UsvEnv
+    env_true: UsvEnv
+    demos: DemoSet
+    x0_heldout: np.ndarray
+    policies: dict
+    tracks: dict
+    rgcl_state: object = None
+    rgcl: object = None
+
+
+def _say(verbose: bool, text: str) -> None:
+    if verbose:
+        print(text, flush=True)
+
+
+def _batched(fn, seeds, *args):
+    """``jit(vmap(fn))`` over the seeds' keys; host arrays out and seconds (compile + run)."""
+    import time
+
+    keys = jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
+    in_axes = (0,) + (None,) * len(args)
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(jax.jit(jax.vmap(fn, in_axes=in_axes))(keys, *args))
+    return jax.tree.map(np.asarray, out), time.perf_counter() - t0
+
+
+def identify_hull(demos: DemoSet, config=None, truth=None) -> tuple[object, dict]:
+    """The hull identified from ``demos`` (:func:`diffgcl.data.sysid.identify`) and a summary:
+    the fitted values and, given the ``truth``, the largest relative error."""
+    from diffgcl.data.sysid import identify
+
+    result = identify(demos, config)
+    info = {"fitted": result.values()}
+    if truth is not None:
+        errors = result.relative_errors(truth)
+        info["relative_errors"] = errors
+        info["max_relative_error"] = max(errors.values())
+    return result.params, info
+
+
+def run_usv(
+    demos: DemoSet,
+    config: UsvRunConfig = UsvRunConfig(),
+    *,
+    manifest: Path | None = None,
+    true_params=None,
+    verbose: bool = True,
+) -> UsvRun:
+    """Bags' demos (ingested, world frame) → hull identification → task windows → rGCL + MDGPS on
+    the identified hull, the references (:data:`METHODS`) → every policy rolled out from held-out
+    situations on ``true_params`` (default: the identified hull) with sensor noise, scored by
+    :func:`score_rollouts` against the demos. ``manifest``: a synthetic set's truth (pole radii).
+    """
+    import dataclasses
+    import time
+
+    from diffgcl.algorithms.presets import usv as usv_preset
+
+    t_start = time.perf_counter()
+    task = config.task
+    rgcl_config = config.rgcl if config.rgcl is not None else usv_preset()
+    summary: dict = {"sets": list(task.sets), "observation": task.observation}
+
+    windows = task_windows(demos, task)
+    radii = pole_radii(windows, task.default_pole_radius, manifest)
+    summary["conditions"] = windows.num_episodes
+    summary["horizon"] = task.horizon
+    _say(verbose, f"{windows.num_episodes} demo windows of {task.horizon} steps (sets {task.sets})")
+
+    if config.identify:
+        chosen = [i for i, e in enumerate(demos.episodes) if str(e.get("set")) in task.sets]
+        params, info = identify_hull(demos.subset(np.asarray(chosen)), config.sysid, true_params)
+        summary["hull_identification"] = info
+        _say(
+            verbose,
+            f"hull identified: {info.get('max_relative_error', float('nan')):.3f} "
+            "largest relative error",
+        )
+    else:
+        params = hull_sim.default_params()
+    truth = true_params if true_params is not None else params
+
+    env = make_task_env(windows, radii, params, task)
+    task_demos = usv_demo_set(env, windows, radii)
+    batch = demo_batch_pooled(task_demos)
+    ranges = SituationRanges.of(task_demos, radius=(float(radii.min()), float(radii.max())))
+    probe = make_task_env(windows, radii, truth, task, horizon=task.horizon + config.eval_extra)
+    x0_heldout = np.asarray(
+        heldout_starts(probe, ranges, jax.random.PRNGKey(config.heldout_seed), config.heldout)
+    )
+    env_true = dataclasses.replace(probe, x0=jnp.asarray(x0_heldout, probe.x0.dtype))
+    demo_score = score_rollouts(env, task_demos.X, task_demos.X)
+    summary["demos"] = {
+        k: demo_score[k]
+        for k in (
+            "episodes",
+            "collision_rate",
+            "return_to_course_rate",
+            "returned_in_window_rate",
+            "min_clearance_median_m",
+            "port_share",
+        )
+    }
+    summary["evaluation_horizon"] = task.horizon + config.eval_extra
+    run = UsvRun(summary, env, env_true, task_demos, x0_heldout, {}, {})
+    eval_key = jax.random.PRNGKey(config.heldout_seed + 1)
+
+    def judge(name: str, policy, params) -> None:
+        S = len(config.seeds)
+        tracks = np.stack(
+            [
+                policy_tracks(
+                    env_true,
+                    policy,
+                    jax.tree.map(lambda a, s=s: jnp.asarray(a[s]), params),
+                    x0_heldout,
+                    jax.random.fold_in(eval_key, s),
+                )
+                for s in range(S)
+            ]
+        )
+        run.policies[name] = (policy, params)
+        run.tracks[name] = tracks
+        score = score_rollouts(env_true, tracks.reshape(-1, *tracks.shape[2:]), task_demos.X)
+        summary[name] = {**summary.get(name, {}), **score}
+        _say(
+            verbose,
+            f"  {name}: collisions {score['collision_rate']:.2f}, back on course "
+            f"{score['return_to_course_rate']:.2f}, clearance {score['min_clearance_median_m']:.1f}"
+            f" m (demos {score['demo_min_clearance_median_m']:.1f} m), path to demos "
+            f"{score['path_distance_to_demos_median_m']:.1f} m",
+        )
+
+    if "rgcl" in config.methods:
+        from diffgcl.algorithms.rgcl import final_rollouts, make_train
+
+        _say(verbose, f"rGCL + MDGPS on the identified hull, seeds {list(config.seeds)}")
+        rgcl = make_train(rgcl_config, env)
+        (state, metrics), seconds = _batched(rgcl.train, config.seeds, batch)
+        Xc = np.asarray(
+            jax.vmap(lambda c: final_rollouts(env, c))(
+                jax.tree.map(jnp.asarray, state.gps.controller)
+            )
+        )
+        ctrl = score_rollouts(env, Xc.reshape(-1, *Xc.shape[2:]), task_demos.X)
+        summary["rgcl"] = {
+            "seconds": seconds,
+            "controllers_on_demo_starts": ctrl,
+            "true_cost_per_iteration": np.asarray(metrics.gps.cost).mean((0, 2)).tolist(),
+        }
+        run.rgcl_state, run.rgcl = state, rgcl
+        judge("rgcl", rgcl.policy_phases.policy, state.policy.params)
+
+    if "expert" in config.methods:
+        from diffgcl.algorithms.mdgps import MDGPSConfig, make_mdgps
+
+        _say(verbose, "MDGPS with the hand-written cost (reference)")
+        gps = dataclasses.replace(
+            rgcl_config.gps, iterations=config.expert_iterations, maxent=False, gauss_newton=False
+        )
+        md = make_mdgps(MDGPSConfig(gps=gps, policy=rgcl_config.policy), env, env.expert_cost)
+        (state, _), seconds = _batched(md.train, config.seeds)
+        summary["expert"] = {"seconds": seconds}
+        judge("expert", md.policy_phases.policy, state.policy.params)
+
+    if "bc" in config.methods:
+        from diffgcl.algorithms.bc import BCConfig, make_bc
+
+        _say(verbose, "behaviour cloning on the recorded observations (baseline)")
+        dtype = env.x0.dtype
+        policy, fit = make_bc(BCConfig(network=rgcl_config.policy.network), env.dO, env.dU, dtype)
+        O, U, mask = (jnp.asarray(a, dtype) for a in (task_demos.O, task_demos.U, task_demos.mask))
+        (state, _), seconds = _batched(lambda k: fit(k, O, U, mask), config.seeds)
+        summary["bc"] = {"seconds": seconds}
+        judge("bc", policy, state.params)
+
+    summary["wall_seconds"] = time.perf_counter() - t_start
+    return run

@@ -1,0 +1,181 @@
+"""The USV pipeline (diffgcl.algorithms.usv): bags' demos into the task's layout, the scores of
+held-out rollouts against hand-built tracks, and (slow) the whole run on a few tiny bags."""
+
+import json
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from diffgcl.algorithms import usv as U
+from diffgcl.data.demos import DemoSet
+from diffgcl.envs.usv import IX_RADIUS, make_usv_env
+from diffgcl.sim import hull as hull_sim
+
+
+def straight_track(env, cross_track: float, T: int, pole_x: float = 60.0, speed: float = 2.0):
+    """[T+1, 11] a boat moving along y = cross_track at ``speed`` m per step past a pole at
+    (pole_x, 0) of radius 0.5 (kinematic; only positions and heading matter to the scores)."""
+    X = np.zeros((T + 1, env.dX))
+    X[:, hull_sim.IX_PX] = speed * np.arange(T + 1)
+    X[:, hull_sim.IX_PY] = cross_track
+    X[:, hull_sim.SL_OBS] = (pole_x, 0.0)
+    X[:, IX_RADIUS] = 0.5
+    return X
+
+
+def swerve_track(env, offset: float, T: int, back: bool, pole_x: float = 60.0):
+    """[T+1, 11] on the course, out to ``offset`` around the pole, and (``back``) onto the course
+    again heading along it; else it stays out."""
+    X = straight_track(env, 0.0, T, pole_x)
+    x = X[:, hull_sim.IX_PX]
+    bump = offset * np.clip(1.0 - np.abs(x - pole_x) / 40.0, 0.0, 1.0) * 1.5
+    y = np.minimum(bump, offset)
+    if not back:
+        y = np.where(x > pole_x, offset, y)
+    X[:, hull_sim.IX_PY] = y
+    X[:, hull_sim.IX_PSI] = np.arctan2(np.gradient(y), np.gradient(x))
+    return X
+
+
+def test_scores_of_hand_built_tracks():
+    env = make_usv_env()
+    T = 80
+    hit = straight_track(env, 0.0, T)  # through the pole
+    wide_back = swerve_track(env, 20.0, T, back=True)
+    wide_out = swerve_track(env, 20.0, T, back=False)
+    clearances = np.asarray(
+        jax.vmap(jax.vmap(env.clearance))(jnp.asarray(np.stack([hit, wide_back])))
+    )
+    assert clearances[0].min() <= 0 < clearances[1].min()
+    m = U.trajectory_metrics(env, np.stack([hit, wide_back, wide_out]))
+    np.testing.assert_array_equal(m["collision"], [True, False, False])
+    np.testing.assert_array_equal(m["returned_to_course"], [True, True, False])
+    # The score against demos that swerve as wide_back: a policy flying the demos' path has path
+    # distance 0 and clearance ratio 1; one through the pole collides in every episode.
+    demos = np.stack([wide_back, wide_back])
+    same = U.score_rollouts(env, demos, demos)
+    assert same["collision_rate"] == 0.0 and same["return_to_course_rate"] == 1.0
+    assert same["path_distance_to_demos_median_m"] == pytest.approx(0.0, abs=1e-9)
+    assert same["clearance_ratio_vs_demos"] == pytest.approx(1.0)
+    bad = U.score_rollouts(env, np.stack([hit, hit]), demos)
+    assert bad["collision_rate"] == 1.0 and bad["clearance_ratio_vs_demos"] < 0
+    # The path distance: a track 3 m to the side of a straight demo is 3 m from it.
+    d = U.path_distance_to_demos(
+        straight_track(env, 3.0, T)[None], straight_track(env, 0.0, T)[None]
+    )
+    np.testing.assert_allclose(d, [3.0], rtol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def tiny_bags(tmp_path_factory):
+    """Two set-2 episodes (LiDAR) and one set-1 episode as ROS1 bags, ingested."""
+    from diffgcl.data.ingest import ingest_bags
+    from diffgcl.data.synth import SynthConfig, synthesize
+
+    folder = tmp_path_factory.mktemp("bags") / "odin"
+    config = SynthConfig(
+        episodes=(1, 2), approach_m=(100.0, 110.0), end_margin_m=(110.0, 120.0), seed=3
+    )
+    synthesize(folder, config)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        demos = ingest_bags(U.bag_paths(folder))
+    return demos, folder
+
+
+def test_bag_demos_in_the_task_layout(tiny_bags):
+    demos, folder = tiny_bags
+    task = U.UsvTaskConfig(before=60, after=100)
+    windows = U.task_windows(demos, task)
+    assert windows.num_episodes == 2 and {e["set"] for e in windows.episodes} == {"2"}
+    radii = U.pole_radii(windows, 0.5, folder / "manifest.json")
+    truth = [
+        e["profile"]["pole_radius"]
+        for e in json.loads((folder / "manifest.json").read_text())["episodes"]
+        if str(e["set"]) == "2"
+    ]
+    np.testing.assert_allclose(np.sort(radii), np.sort(truth))
+    env = U.make_task_env(windows, radii, hull_sim.default_params(), task)
+    task_demos = U.usv_demo_set(env, windows, radii)
+    assert task_demos.X.shape == (2, task.horizon + 1, env.dX)
+    assert task_demos.O.shape == (2, task.horizon + 1, env.dO)
+    # Each window starts on its own condition; the pole's radius rides in the state.
+    np.testing.assert_allclose(np.asarray(env.x0), task_demos.X[:, 0])
+    np.testing.assert_allclose(
+        task_demos.X[..., IX_RADIUS], radii[:, None] * np.ones((1, task.horizon + 1))
+    )
+    # Actions normalised: the physical commands come back through env.command.
+    phys = np.asarray(jax.vmap(jax.vmap(env.command))(jnp.asarray(task_demos.U)))
+    np.testing.assert_allclose(phys, windows.U, rtol=1e-9, atol=1e-9)
+    # The recorded observations have the env's layout: everything but the ranges equals env.obs.
+    n = env.layout.num_beams
+    sim = np.asarray(jax.vmap(jax.vmap(env.obs))(jnp.asarray(task_demos.X)))
+    np.testing.assert_allclose(task_demos.O[..., n:], sim[..., n:], atol=1e-6)
+    # The pooled demo controller: one fit shared by both conditions.
+    batch = U.demo_batch_pooled(task_demos)
+    assert batch.X.shape == (2, 1, task.horizon + 1, env.dX)
+    np.testing.assert_array_equal(
+        np.asarray(batch.controller.K[0]), np.asarray(batch.controller.K[1])
+    )
+    # Held-out situations lie within the demos' ranges and differ from every demo start.
+    ranges = U.SituationRanges.of(task_demos)
+    x0 = np.asarray(U.heldout_starts(env, ranges, jax.random.PRNGKey(0), 16))
+    ahead = x0[:, hull_sim.IX_OBS_X] - x0[:, hull_sim.IX_PX]
+    assert np.all((ahead >= ranges.distance[0] - 1e-9) & (ahead <= ranges.distance[1] + 1e-9))
+    assert not np.any(np.all(np.isclose(x0[:, None], task_demos.X[None, :, 0]), axis=-1))
+
+
+def test_unknown_set_is_a_one_line_error(tiny_bags):
+    demos, _ = tiny_bags
+    from diffgcl.data.demos import DemoError
+
+    with pytest.raises(DemoError, match="no episode of sets"):
+        U.task_windows(demos, U.UsvTaskConfig(sets=("7",)))
+
+
+@pytest.mark.slow
+def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
+    """rGCL + MDGPS, the expert-cost reference and BC, judged on the true hull: finite figures in
+    range, the plots and summary written, and a user's file in --out kept."""
+    from diffgcl.algorithms.presets import usv as usv_preset
+    from diffgcl.algorithms.presets import with_overrides
+    from diffgcl.data.synth import true_params
+    from diffgcl.viz.usv import save_usv_plots
+
+    demos, folder = tiny_bags
+    rgcl = with_overrides(
+        usv_preset(),
+        [
+            "iterations=3",
+            "freeze_last=1",
+            "gcl.pretrain_steps=20",
+            "gcl.n_steps=5",
+            "policy.s_step.n_steps=20",
+        ],
+    )
+    config = U.UsvRunConfig(
+        task=U.UsvTaskConfig(before=60, after=100), rgcl=rgcl, heldout=4, expert_iterations=2
+    )
+    run = U.run_usv(demos, config, manifest=folder / "manifest.json", true_params=true_params())
+    for name in U.METHODS:
+        s = run.summary[name]
+        assert s["episodes"] == 4
+        for key in ("collision_rate", "return_to_course_rate", "port_share"):
+            assert 0.0 <= s[key] <= 1.0
+        assert np.isfinite(s["path_distance_to_demos_median_m"])
+        assert run.tracks[name].shape == (1, 4, config.task.horizon + 1, run.env.dX)
+    assert run.summary["hull_identification"]["max_relative_error"] < 0.5
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    from diffgcl.io import OutputError
+
+    with pytest.raises(OutputError):
+        save_usv_plots(run, out)
+    save_usv_plots(run, out, overwrite=True)
+    assert (out / "notes.txt").read_text() == "mine"
+    assert (out / "usv_tracks.png").is_file() and (out / "usv_cost_map.png").is_file()
+    assert isinstance(run.demos, DemoSet)
