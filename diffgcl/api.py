@@ -374,7 +374,7 @@ def learn(
             config, network=dataclasses.replace(config.network, features="env")
         )
     config = with_overrides(config, edits)
-    batch = demo_batch(demos, x0.shape[0])
+    batch = demo_batch(demos, x0.shape[0], env=env)
     result = train_seeds(
         config, env, batch, list(seeds), out=None if out is None else Path(out), progress=progress
     )

@@ -240,7 +240,7 @@ def main(argv=None) -> int:
         if not args.no_timing:
             summary["mdgps_seconds_per_run_after_compile"] = time_single(md.train, keys[0])
 
-    batch = demo_batch(demos, len(TRAIN_STARTS))
+    batch = demo_batch(demos, len(TRAIN_STARTS), env=env)
     if "rgcl" in methods:
         config = dataclasses.replace(default("v2"), policy=settings)
         if args.fast:

@@ -33,13 +33,14 @@ import numpy as np
 
 from diffgcl.control.dual import c_step
 from diffgcl.control.init import init_controller
-from diffgcl.control.lqr import lqr_backward
+from diffgcl.control.lqr import controller_entropy, lqr_backward
 from diffgcl.costs.buffer import buffer_add, init_buffer
 from diffgcl.costs.demo_controller import fit_demo_controller
 from diffgcl.costs.expansion import about_origin, expand_cost, expand_cost_samples
 from diffgcl.costs.gcl import GCLConfig, GCLState, fusion_weighted_samples, make_cost_learner
 from diffgcl.costs.model_samples import model_weighted_samples
-from diffgcl.costs.network import CostNetwork, CostNetworkConfig, update_normaliser
+from diffgcl.costs.network import CostNetwork, CostNetworkConfig, untempered, update_normaliser
+from diffgcl.costs.temperature import calibrated_log_temperature
 from diffgcl.eval.epic import epic_distance, pearson_distance, step_cost_as_transition_cost
 from diffgcl.types import (
     InitialStateDistribution,
@@ -56,7 +57,10 @@ class LQIOCConfig:
     """The problem and the learner (demos / samples per condition; the conditions are the start
     states). sample_source: ``"buffer"`` (GCL: every past sample, fusion weights) or ``"model"``
     (the seed's variant: fresh samples of the current controller in the linear-Gaussian model,
-    full ``log p``). The default network has no hidden layers — affine features, so the learned
+    full ``log p``). temperature: ``"likelihood"`` (the cost's scale as GCL fits it) or
+    ``"demos"`` (rescaled after pre-training and every update so that its MaxEnt controller is as
+    precise as the demos' fitted one, :mod:`diffgcl.costs.temperature`). The default network has
+    no hidden layers — affine features, so the learned
     cost is a PSD quadratic in x plus ``w_u‖u‖²``, the true model class; the ``mlp`` row of the
     ablation uses a ReLU network."""
 
@@ -70,6 +74,7 @@ class LQIOCConfig:
     action_weight: float = 0.5
     n_heldout: int = 10
     sample_source: str = "buffer"
+    temperature: str = "likelihood"
     network: CostNetworkConfig = field(
         default_factory=lambda: CostNetworkConfig(
             hidden=(), n_features=8, action_weight=0.1, std_floor=1e-2
@@ -249,8 +254,20 @@ def make_train(config: LQIOCConfig):
             )
             return jax.vmap(one)(keys, controllers, x0_dists, DX, DU)
 
+        demo_entropy = jax.vmap(controller_entropy)(demo_ctrl)
+
+        def calibrate(state: GCLState) -> GCLState:
+            if config.temperature == "likelihood":
+                return state
+            raw = network.bind_residual(untempered(state.params))
+            rho = jax.vmap(lambda X, U, H: calibrated_log_temperature(raw, dynamics, X, U, H))(
+                DX, DU, demo_entropy
+            )
+            return state.replace(params=state.params.replace(log_temperature=rho.mean()))
+
         samples, demos = fuse(buffer, demo_ctrl, DX, DU, config.gcl)
         state, _ = learner.pretrain(state, key_pre, demos, samples)
+        state = calibrate(state)
 
         def iteration(carry, key):
             state, buffer, controllers, eta, X, U = carry
@@ -272,6 +289,7 @@ def make_train(config: LQIOCConfig):
             else:
                 samples, demos = fuse(buffer, demo_ctrl, DX, DU, config.gcl)
             state, metrics = learner.update(state, key_cost, demos, samples)
+            state = calibrate(state)
             true = jax.vmap(jax.vmap(true_traj_cost))(X, U).mean()
             out = (metrics.loss[-1], info.kl.mean(), true)
             return (state, buffer, new, info.eta, X, U), out
@@ -292,6 +310,20 @@ def make_train(config: LQIOCConfig):
         true_traj_cost=true_traj_cost,
     )
     return train, problem
+
+
+def covariance_ratio(problem: dict, params) -> tuple[float, float]:
+    """How the MaxEnt controller of the learned cost compares with the demonstrator's: the
+    smallest and largest eigenvalue over t of ``Σ*^{-1/2} Σ Σ*^{-1/2}`` (1 and 1 when the action
+    covariances agree). The learned cost is quadratic, so its expansion about 0 is exact."""
+    dynamics, network = problem["dynamics"], problem["network"]
+    T, dX, dU = dynamics.B.shape
+    quad = expand_cost(network.bind(params), jnp.zeros((T + 1, dX)), jnp.zeros((T, dU)))
+    learned = lqr_backward(dynamics, quad).controller.cov
+    L = np.linalg.cholesky(np.asarray(problem["optimal"].cov))
+    Linv = np.linalg.inv(L)
+    eig = np.linalg.eigvalsh(Linv @ np.asarray(learned) @ np.swapaxes(Linv, -1, -2))
+    return float(eig.min()), float(eig.max())
 
 
 def evaluate(config: LQIOCConfig, problem: dict, result: TrainResult, key) -> dict:
@@ -333,7 +365,11 @@ def evaluate(config: LQIOCConfig, problem: dict, result: TrainResult, key) -> di
         gamma=1.0,
     )
     pearson = pearson_distance(jax.vmap(c_true)(Xs, Us), jax.vmap(c_learned)(Xs, Us))
+    ratio_min, ratio_max = covariance_ratio(problem, params)
     return dict(
+        covariance_ratio_min=ratio_min,
+        covariance_ratio_max=ratio_max,
+        log_temperature=float(params.log_temperature),
         spearman=spearman(true, learned),
         epic_distance=float(epic),
         pearson_distance=float(pearson),
@@ -394,6 +430,8 @@ def run(config: LQIOCConfig, seeds: list[int]) -> dict:
     worst = {
         "spearman_min": min(f["spearman"] for f in per_seed),
         "epic_distance_max": max(f["epic_distance"] for f in per_seed),
+        "covariance_ratio_min": min(f["covariance_ratio_min"] for f in per_seed),
+        "covariance_ratio_max": max(f["covariance_ratio_max"] for f in per_seed),
     }
     return dict(**mean, **worst, seeds=seeds, per_seed=per_seed, train_seconds=seconds)
 

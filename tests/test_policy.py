@@ -346,6 +346,7 @@ def test_cli_train_with_a_policy_and_bc(observed_demos, tmp_path, monkeypatch):
 
     env, demos = observed_demos
     monkeypatch.setattr(diffgcl.envs, "make_env", lambda name, **kw: env)
+    monkeypatch.setattr(rgcl_cli, "env_from_args", lambda args, recorded=None: (env, {}))
     from diffgcl.algorithms import runner
 
     for module in (rgcl_cli, runner):

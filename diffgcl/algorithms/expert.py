@@ -11,6 +11,8 @@ and its true cost.
 
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -113,44 +115,105 @@ def write_expert_demos(
     return demos
 
 
-BUILTIN_DEMOS = "arm-gps-expert-10-it30"
 EXPERT_ITERATIONS = 30
+EXPERT_SEEDS = 8
+
+
+def task_fingerprint(env: Env) -> dict:
+    """What defines an env's task, as JSON-ready values: its name, the SHA-256 of its MJCF file,
+    the start states, horizon and time step, and every task setting the env carries (the arm's
+    target, torque cap, action weight, success tolerance), plus the float precision. Two envs with
+    the same fingerprint pose the same control problem."""
+    import hashlib
+    from pathlib import Path
+
+    spec: dict = {
+        "env": env.name,
+        "x0": np.asarray(env.initial_states(), dtype=float).round(12).tolist(),
+        "horizon": int(env.horizon),
+        "dt": float(f"{float(env.dt):.7g}"),
+        "dtype": str(jnp.asarray(env.initial_states()).dtype),
+    }
+    path = Path(env.mjcf_path) if getattr(env, "mjcf_path", "") else None
+    spec["mjcf_sha256"] = (
+        hashlib.sha256(path.read_bytes()).hexdigest() if path and path.is_file() else None
+    )
+    for name in ("target", "torque_limit", "action_weight", "success_tolerance"):
+        if hasattr(env, name):
+            value = np.asarray(getattr(env, name), dtype=float).round(12)
+            spec[name] = value.tolist()
+    for name in ("success_hold_steps",):
+        if hasattr(env, name):
+            spec[name] = int(getattr(env, name))
+    return spec
+
+
+def best_expert(metrics) -> int | None:
+    """The run (index into the leading seed axis of GPS ``metrics`` [S, iterations, C]) whose
+    final controllers succeed on every condition with the lowest final true cost; None when no
+    run succeeds."""
+    final = np.all(np.asarray(metrics.success)[:, -1], axis=-1)
+    if not final.any():
+        return None
+    final_cost = np.asarray(metrics.cost)[:, -1].sum(axis=-1)
+    return int(np.argmin(np.where(final, final_cost, np.inf)))
 
 
 def builtin_demos(env=None, *, num_demos: int = 10, seed: int = 0, verbose: bool = True):
-    """The built-in arm demos (a :class:`diffgcl.data.demos.DemoSet`), generated once and cached.
+    """Expert demos for ``env``'s task (a :class:`diffgcl.data.demos.DemoSet`; default: the arm),
+    generated once and cached under a key of the task and the expert settings.
 
-    The expert is GPS on the expert cost (the seed's "10 demos from a GPS expert"), 8 seeds of
-    ``EXPERT_ITERATIONS`` iterations; the succeeding seed with the lowest final true cost gives the
-    demos (its controller sampled with its own noise). 30 rather than GPS's 10 iterations: at 10
-    the expert is not converged (true cost 95.3–97.2 vs 94.5–95.1 at 30) and its demos still
-    drift 0.04–0.07 rad about the target over the last 10 steps (0.01–0.04 at 30); every expert
-    overshoots joint 1 by 0.12–0.23 rad around step 70 (the torque cap), and the learned cost
-    sees that too."""
+    The expert is GPS on the env's expert cost (the seed's "10 demos from a GPS expert"),
+    ``EXPERT_SEEDS`` seeds of ``EXPERT_ITERATIONS`` iterations; the succeeding seed with the
+    lowest final true cost gives the demos (its controller sampled with its own noise). 30 rather
+    than GPS's 10 iterations: at 10 the arm's expert is not converged (true cost 95.3–97.2 vs
+    94.5–95.1 at 30) and its demos still drift 0.04–0.07 rad about the target over the last 10
+    steps (0.01–0.04 at 30); every expert overshoots joint 1 by 0.12–0.23 rad around step 70 (the
+    torque cap), and the learned cost sees that too.
+
+    The cache folder is ``$DIFFGCL_CACHE/demos/<env>-gps-expert-<n>-it<iterations>-seed<seed>-
+    <hash>``, the hash over :func:`task_fingerprint` (MJCF file, start states, target, horizon,
+    ...) and the expert's settings, which ``task.json`` in the folder spells out: an arm with
+    another start or target gets its own demos, never another task's."""
+    import hashlib
+    import json
+
+    from diffgcl.algorithms.gps import GPSConfig
     from diffgcl.data.demos import DemoSet
+    from diffgcl.envs import make_env
     from diffgcl.runtime import cache_root
 
-    folder = cache_root() / "demos" / f"{BUILTIN_DEMOS}-seed{seed}"
+    env = make_env("arm") if env is None else env
+    config = GPSConfig(iterations=EXPERT_ITERATIONS)
+    key = {
+        "task": task_fingerprint(env),
+        "expert": {
+            "gps": dataclasses.asdict(config),
+            "seeds": list(range(seed, seed + EXPERT_SEEDS)),
+            "num_demos": num_demos,
+            "demo_key": "PRNGKey(10000 + seed)",
+        },
+    }
+    text = json.dumps(key, sort_keys=True)
+    digest = hashlib.sha256(text.encode()).hexdigest()[:16]
+    name = f"{env.name}-gps-expert-{num_demos}-it{EXPERT_ITERATIONS}-seed{seed}-{digest}"
+    folder = cache_root() / "demos" / name
     if (folder / "demos.npz").is_file():
         return DemoSet.load(folder)
-    from diffgcl.algorithms.expert import write_expert_demos
-    from diffgcl.algorithms.gps import GPSConfig
     from diffgcl.algorithms.gps_runner import run_seeds
-    from diffgcl.envs import make_env
 
-    env = make_env("arm") if env is None else env
     if verbose:
-        print(f"generating the built-in expert demos (GPS on the expert cost) into {folder}")
-    seeds = list(range(seed, seed + 8))
-    config = GPSConfig(iterations=EXPERT_ITERATIONS)
-    result = run_seeds(config, env, env.expert_cost, seeds, chunk=8)
-    final = np.all(result["metrics"].success[:, -1], axis=-1)
-    if not final.any():
-        raise RuntimeError("builtin_demos: no GPS expert seed succeeded")
-    final_cost = np.asarray(result["metrics"].cost[:, -1]).sum(axis=-1)
-    i = int(np.argmin(np.where(final, final_cost, np.inf)))
+        print(f"generating expert demos (GPS on the expert cost) for this task into {folder}")
+    seeds = key["expert"]["seeds"]
+    result = run_seeds(config, env, env.expert_cost, seeds, chunk=EXPERT_SEEDS)
+    i = best_expert(result["metrics"])
+    if i is None:
+        raise RuntimeError(
+            f"builtin_demos: no GPS expert seed of {seeds} succeeded on this task "
+            f"({json.dumps(key['task'])}); is it feasible?"
+        )
     controllers = jax.tree.map(lambda a: jnp.asarray(a[i]), result["state"].controller)
-    return write_expert_demos(
+    demos = write_expert_demos(
         folder,
         env,
         controllers,
@@ -159,3 +222,5 @@ def builtin_demos(env=None, *, num_demos: int = 10, seed: int = 0, verbose: bool
         cost=env.expert_cost,
         seed=seeds[i],
     )
+    (folder / "task.json").write_text(json.dumps(key, indent=1, sort_keys=True))
+    return demos

@@ -5,7 +5,9 @@ sample-based MaxEnt IOC cost update of GCL (:mod:`diffgcl.costs.gcl`, Finn et al
 schedules (the seed's Fig. 3.3):
 
 * **v1** — per rGCL iteration, ``gps_per_update`` full GPS iterations with the current cost
-  (sample, fit dynamics, expand, adapt the step, C-step), then one cost update;
+  (sample, fit dynamics, expand, adapt the step, C-step), then one cost update; the step of the
+  first GPS iteration after an update is judged with the cost before it (the one its controller
+  was optimised for, ``CostState.prev_params``), so that every step is judged under one cost;
 * **v2** — GPS's outer loop (sample + fit dynamics), the KL step adapted with the *previous*
   cost (Finn et al. compute it before the cost changes), the cost update, then GPS's inner loop
   (expand the *new* cost, C-step).
@@ -78,6 +80,7 @@ from diffgcl.algorithms.mdgps import (
     make_policy_phases,
     policy_iteration_samples,
 )
+from diffgcl.control.lqr import controller_entropy
 from diffgcl.costs.buffer import SampleBuffer, buffer_add, init_buffer
 from diffgcl.costs.demo_controller import fit_demo_controller
 from diffgcl.costs.gcl import (
@@ -94,13 +97,17 @@ from diffgcl.costs.network import (
     CostNetwork,
     CostNetworkConfig,
     CostParams,
+    untempered,
 )
+from diffgcl.costs.temperature import calibrated_log_temperature
+from diffgcl.eval.controllers import demo_log_likelihood
 from diffgcl.policies.mdgps import PolicyState
 from diffgcl.sim.rollout import rollout_controller, sample_controller
-from diffgcl.types import Array, Env, LinearGaussianController, PRNGKey
+from diffgcl.types import Array, Env, LinearDynamics, LinearGaussianController, PRNGKey
 
 SCHEDULES = ("v1", "v2")
 SAMPLE_SOURCES = ("buffer", "model")
+TEMPERATURES = ("likelihood", "demos")
 
 
 @dataclass(frozen=True)
@@ -120,7 +127,14 @@ class RGCLConfig:
     None: off); nan_guard: roll back iterations that produce non-finite values;
     reopt_iterations: GPS iterations of the re-optimisation check; policy: a global policy on the
     env's observations trained by MDGPS alongside (:class:`PolicySettings`; None: local
-    controllers only).
+    controllers only); temperature: how the learned cost's scale ``e^ρ`` is set —
+    ``"likelihood"``: ρ = 0, the scale the GCL fit gives; ``"demos"``: after pre-training and
+    after every cost update, ρ makes the MaxEnt controller of the cost about the demos as precise
+    as the demos' own fitted controller (equal action entropy; :mod:`diffgcl.costs.temperature`;
+    needs ``DemoBatch.dynamics``); temperature_start, temperature_ramp: with ``"demos"``, ρ stays
+    0 until ``temperature_start`` cost updates are done, then grows linearly to the calibrated
+    value over ``temperature_ramp`` more (0: at once; both 0: calibrated from the pre-training
+    on), so that GPS explores at the likelihood's scale while the cost takes shape.
     """
 
     schedule: str = "v2"
@@ -140,6 +154,9 @@ class RGCLConfig:
     nan_guard: bool = True
     reopt_iterations: int = 30
     policy: PolicySettings | None = None
+    temperature: str = "likelihood"
+    temperature_start: int = 0
+    temperature_ramp: int = 0
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -147,6 +164,16 @@ class RGCLConfig:
         if self.sample_source not in SAMPLE_SOURCES:
             raise ValueError(
                 f"RGCLConfig: sample_source {self.sample_source!r}; choose one of {SAMPLE_SOURCES}"
+            )
+        if self.temperature not in TEMPERATURES:
+            raise ValueError(
+                f"RGCLConfig: temperature {self.temperature!r}; choose one of {TEMPERATURES}"
+            )
+        updates = self.iterations - self.freeze_last
+        if not 0 <= self.temperature_start + self.temperature_ramp <= updates:
+            raise ValueError(
+                f"RGCLConfig: temperature_start + temperature_ramp must be within 0 and the "
+                f"{updates} cost updates (iterations − freeze_last)"
             )
         if self.iterations < 1 or self.gps_per_update < 1 or self.buffer_controllers < 1:
             raise ValueError("RGCLConfig: iterations, gps_per_update, buffer_controllers >= 1")
@@ -174,21 +201,27 @@ class RGCLHyperparams:
 class DemoBatch:
     """Demonstrations grouped by condition: X: [C, N, T+1, dX], U: [C, N, T, dU]; controller:
     the demos' own fitted linear-Gaussian controller per condition (fields [C, T, ...]), a
-    component of the fusion mixture (:func:`diffgcl.costs.demo_controller.fit_demo_controller`)."""
+    component of the fusion mixture (:func:`diffgcl.costs.demo_controller.fit_demo_controller`);
+    dynamics: the env's dynamics linearised about the demos (fields [C, T, ...]; None when built
+    without the env), for the temperature calibration."""
 
     X: Array
     U: Array
     controller: LinearGaussianController
+    dynamics: LinearDynamics | None = None
 
 
 @struct.dataclass
 class CostState:
     """The learned cost and its optimiser: params (:class:`CostParams`), opt_state (optax state
-    of ``params.net``, learning rate inside), step: int32 gradient steps taken."""
+    of ``params.net``, learning rate inside), step: int32 gradient steps taken; prev_params: the
+    parameters before the last update — the cost that the current controllers were optimised
+    for, with which v1 judges the step of its first GPS iteration after an update."""
 
     params: CostParams
     opt_state: optax.OptState
     step: Array
+    prev_params: CostParams
 
 
 @struct.dataclass
@@ -215,15 +248,21 @@ class RGCLMetrics:
     """Per rGCL iteration (a run stacks a leading [iterations] axis).
 
     gps: :class:`GPSMetrics` with fields [G, C] (G = ``config.gps_per_iteration``); learned_cost:
-    [G, C] mean learned trajectory cost of the GPS samples; gcl: :class:`GCLMetrics` averaged over
-    the update's gradient steps (scalars; zeros on frozen iterations); cost_updated: bool;
-    rolled_back: bool, the NaN guard rejected this iteration; sample_X: [G, C, N, T+1, dX] the
-    GPS samples (for the motion plots); policy: :class:`PolicyMetrics` with fields [G, ...] after
-    each S-step (None without a policy).
+    [G, C] mean learned trajectory cost of the GPS samples; demo_learned_cost: [C] mean learned
+    trajectory cost of the demos (both under the cost after this iteration's update);
+    demo_log_likelihood: [G, C] the demos' mean action log-likelihood under the new controllers
+    (:func:`diffgcl.eval.controllers.demo_log_likelihood`); log_temperature: the cost's ρ after
+    the update; gcl: :class:`GCLMetrics` averaged over the update's gradient steps (scalars;
+    zeros on frozen iterations); cost_updated: bool; rolled_back: bool, the NaN guard rejected
+    this iteration; sample_X: [G, C, N, T+1, dX] the GPS samples (for the motion plots); policy:
+    :class:`PolicyMetrics` with fields [G, ...] after each S-step (None without a policy).
     """
 
     gps: GPSMetrics
     learned_cost: Array
+    demo_learned_cost: Array
+    demo_log_likelihood: Array
+    log_temperature: Array
     sample_X: Array
     gcl: GCLMetrics
     cost_updated: Array
@@ -298,10 +337,37 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     def residual(params: CostParams):
         return network.bind_residual(params)
 
-    def learned_cost(params: CostParams, samples: GPSSamples) -> Array:
-        """Mean learned trajectory cost of the samples per condition: [C]."""
+    def learned_cost(params: CostParams, X: Array, U: Array) -> Array:
+        """Mean learned trajectory cost of trajectories X: [C, N, T+1, dX] per condition: [C]."""
         per_traj = jax.vmap(jax.vmap(network.trajectory_cost, (None, 0, 0)), (None, 0, 0))
-        return per_traj(params, samples.X, samples.U).mean(axis=-1)
+        return per_traj(params, X, U).mean(axis=-1)
+
+    def demo_likelihood(controller: LinearGaussianController, demos: DemoBatch) -> Array:
+        """The demos' mean action log-likelihood under controllers [C, T, ...]: [C]."""
+        return jax.vmap(demo_log_likelihood)(controller, demos.X, demos.U)
+
+    def calibrate(params: CostParams, demos: DemoBatch, updates: Array | int) -> CostParams:
+        """Set ρ (``config.temperature``) after ``updates`` cost updates: the demos' own action
+        entropy for the MaxEnt controller of the cost about the demos, one ρ for all conditions
+        (scaled by the ramp's fraction)."""
+        if config.temperature == "likelihood":
+            return params
+        if demos.dynamics is None:
+            raise ValueError(
+                "temperature='demos' needs the dynamics about the demos: build the DemoBatch "
+                "with demo_batch(..., env=env)"
+            )
+        raw = network.bind_residual(untempered(params))
+        target = jax.vmap(controller_entropy)(demos.controller)
+        rho = jax.vmap(lambda dyn, X, U, H: calibrated_log_temperature(raw, dyn, X, U, H))(
+            demos.dynamics, demos.X, demos.U, target
+        )
+        done = jnp.asarray(updates, dtype) - config.temperature_start
+        if config.temperature_ramp == 0:
+            fraction = (done >= 0).astype(dtype)
+        else:
+            fraction = jnp.clip(done / config.temperature_ramp, 0.0, 1.0)
+        return params.replace(log_temperature=(fraction * rho.mean()).astype(dtype))
 
     # ---- cost update -------------------------------------------------------------------------
 
@@ -343,7 +409,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             grads, metrics = jax.grad(loss, has_aux=True)(cost.params.net)
             updates, opt_state = optimiser.update(grads, cost.opt_state, cost.params.net)
             net = optax.apply_updates(cost.params.net, updates)
-            new = CostState(
+            new = cost.replace(
                 params=cost.params.replace(net=net), opt_state=opt_state, step=cost.step + 1
             )
             return new, metrics.replace(grad_norm=optax.tree.norm(grads))
@@ -368,7 +434,10 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         params = params.replace(norm=network.fit_normaliser(demos.X))
         optimiser = _make_optimiser(gcl_cfg, hp.cost_lr)
         cost = CostState(
-            params=params, opt_state=optimiser.init(params.net), step=jnp.zeros((), jnp.int32)
+            params=params,
+            opt_state=optimiser.init(params.net),
+            step=jnp.zeros((), jnp.int32),
+            prev_params=params,
         )
         Kc = config.buffer_controllers
         empty = init_buffer(N * Kc, Kc, T, dX, dU, dtype)
@@ -384,6 +453,8 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
                 pre_buffer = jax.vmap(buffer_add)(buffer, gps.controller, samples.X, samples.U)
             samples_w, demos_w = weighted_sets(pre_buffer, demos, key_samples)
             cost, _ = optimise(cost, key_pretrain, demos_w, samples_w, gcl_cfg.pretrain_steps)
+        params = calibrate(cost.params, demos, 0)
+        cost = cost.replace(params=params, prev_params=params)
         policy = None
         if policy_phases is not None:
             # The observation normaliser comes from what the demonstrator's sensors would show.
@@ -411,8 +482,12 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         key_sets, key_opt = jax.random.split(key)
         samples_w, demos_w = weighted_sets(buffer, demos, key_sets, samples, sample_ctrl)
         new, metrics = optimise(cost, key_opt, demos_w, samples_w, gcl_cfg.n_steps)
+        params = calibrate(new.params, demos, state.iteration + 1)
+        new = new.replace(params=params, prev_params=cost.params)
         update = state.iteration < config.iterations - config.freeze_last
-        new = jax.tree.map(lambda a, b: jnp.where(update, a, b), new, cost)
+        # A frozen iteration leaves the cost as it is: the controllers' cost is then the current.
+        kept = cost.replace(prev_params=cost.params)
+        new = jax.tree.map(lambda a, b: jnp.where(update, a, b), new, kept)
         metrics = jax.tree.map(lambda m: jnp.where(update, m, 0.0), metrics)
         return new, metrics, update
 
@@ -454,7 +529,10 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         policy, policy_metrics = s_step(state.policy, key_policy, samples, gps)
         metrics = RGCLMetrics(
             gps=jax.tree.map(lambda a: a[None], gps_metrics),
-            learned_cost=learned_cost(cost.params, samples)[None],
+            learned_cost=learned_cost(cost.params, samples.X, samples.U)[None],
+            demo_learned_cost=learned_cost(cost.params, demos.X, demos.U),
+            demo_log_likelihood=demo_likelihood(gps.controller, demos)[None],
+            log_temperature=cost.params.log_temperature,
             sample_X=samples.X[None],
             gcl=gcl_metrics,
             cost_updated=updated,
@@ -467,16 +545,27 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         key_gps, key_cost = jax.random.split(key)
         params = state.cost.params
 
-        def gps_iteration(carry, key):
+        def gps_iteration(carry, inputs):
             gps, policy, buffer, _, _ = carry
+            key, first = inputs
             key_sample, key_policy = jax.random.split(key)
             samples, anchor, proposal = draw_samples(gps, policy, key_sample)
             quad = phases.expand(residual(params), samples)
-            step_mult = adapt(state, gps, samples, quad, anchor)
+            # Each step is judged under one cost: the one its controller was optimised for (J_prev
+            # and J_pred were expanded with it) — on the first GPS iteration after a cost update,
+            # the cost before that update. The GCL objective does not fix the cost's constant, so
+            # mixing two costs here would let the cost's drift set the step.
+            judged = jax.tree.map(
+                lambda old, new: jnp.where(first, old, new), state.cost.prev_params, params
+            )
+            quad_judged = phases.expand(residual(judged), samples)
+            step_mult = adapt(state, gps, samples, quad_judged, anchor)
             buffer = jax.vmap(buffer_add)(buffer, proposal, samples.X, samples.U)
             new_gps, m = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
             policy, pm = s_step(policy, key_policy, samples, new_gps)
-            out = (m, learned_cost(params, samples), samples.X, pm)
+            lc = learned_cost(params, samples.X, samples.U)
+            ll = demo_likelihood(new_gps.controller, demos)
+            out = (m, lc, ll, samples.X, pm)
             return (new_gps, policy, buffer, samples, proposal), out
 
         empty = jax.tree.map(
@@ -484,8 +573,8 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             jax.eval_shape(lambda: phases.outer(state.gps, key_gps)),
         )
         carry = (state.gps, state.policy, state.buffer, empty, state.gps.controller)
-        (gps, policy, buffer, samples, proposal), (gps_metrics, lc, sample_X, pm) = lax.scan(
-            gps_iteration, carry, jax.random.split(key_gps, G)
+        (gps, policy, buffer, samples, proposal), (gps_metrics, lc, ll, sample_X, pm) = lax.scan(
+            gps_iteration, carry, (jax.random.split(key_gps, G), jnp.arange(G) == 0)
         )
         # The model variant generates from the last fitted model and the controller it sampled.
         cost, gcl_metrics, updated = cost_step(
@@ -494,6 +583,9 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         metrics = RGCLMetrics(
             gps=gps_metrics,
             learned_cost=lc,
+            demo_learned_cost=learned_cost(cost.params, demos.X, demos.U),
+            demo_log_likelihood=ll,
+            log_temperature=cost.params.log_temperature,
             sample_X=sample_X,
             gcl=gcl_metrics,
             cost_updated=updated,
@@ -582,10 +674,12 @@ def make_reoptimise(config: RGCLConfig, env: Env, network: CostNetwork):
     return reopt
 
 
-def demo_batch(demos, conditions: int, dtype=None) -> DemoBatch:
+def demo_batch(demos, conditions: int, dtype=None, env: Env | None = None) -> DemoBatch:
     """Host-side: a :class:`DemoBatch` [C, N, ...] from a :class:`diffgcl.data.demos.DemoSet`,
     grouping episodes by their ``condition`` metadata (all in condition 0 when absent), with the
-    demos' fitted controller; every condition must have the same number of demos."""
+    demos' fitted controller and, given the ``env``, its dynamics linearised about the demos (by
+    autodiff, :func:`diffgcl.dynamics.autodiff.fit_dynamics`); every condition must have the same
+    number of demos."""
     cond = np.array(
         [int(e.get("condition", 0)) for e in demos.episodes]
         if demos.episodes
@@ -602,4 +696,9 @@ def demo_batch(demos, conditions: int, dtype=None) -> DemoBatch:
     X = jnp.asarray(np.stack([demos.X[g] for g in groups]), dtype)
     U = jnp.asarray(np.stack([demos.U[g] for g in groups]), dtype)
     controller = jax.jit(jax.vmap(fit_demo_controller))(X, U)
-    return DemoBatch(X=X, U=U, controller=controller)
+    dynamics = None
+    if env is not None:
+        from diffgcl.dynamics.autodiff import fit_dynamics
+
+        dynamics = jax.jit(jax.vmap(lambda x, u: fit_dynamics(env.step, x, u)))(X, U)
+    return DemoBatch(X=X, U=U, controller=controller, dynamics=dynamics)

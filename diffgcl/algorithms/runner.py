@@ -39,7 +39,7 @@ import csv
 import json
 import os
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 
 import jax
@@ -322,17 +322,17 @@ def _concat(parts):
 # ---- run folder ---------------------------------------------------------------------------------
 
 
-def run_summary(result: RunResult, env) -> dict:
+def run_summary(result: RunResult, env, demos: DemoBatch | None = None) -> dict:
     """Per-seed outcome of a run: success (DESIGN §2, noise-free rollout of the final controller
     on every condition), final distance (largest joint error at the last state, worst condition),
-    first successful iteration."""
+    first successful iteration; with the ``demos``, the final controllers' fit as a distribution
+    (:mod:`diffgcl.eval.controllers`: entropy beside the demos' controller's, the demos' mean
+    log-likelihood, success of 20 noisy samples per seed and condition) and the cost's
+    log-temperature."""
     from diffgcl.algorithms.rgcl import final_rollouts
 
-    X = np.asarray(
-        jax.jit(jax.vmap(lambda c: final_rollouts(env, c)))(
-            jax.tree.map(jnp.asarray, result.state.gps.controller)
-        )
-    )
+    controller = jax.tree.map(jnp.asarray, result.state.gps.controller)
+    X = np.asarray(jax.jit(jax.vmap(lambda c: final_rollouts(env, c)))(controller))
     success = np.asarray(jax.vmap(jax.vmap(env.success))(jnp.asarray(X))).all(axis=-1)
     dist = np.abs(X[:, :, -1, :2] - np.asarray(env.target)).max(axis=(1, 2))
     per_iter = np.all(result.metrics.gps.success[:, :, -1], axis=-1)  # [S, iterations]
@@ -349,8 +349,29 @@ def run_summary(result: RunResult, env) -> dict:
         "c_step_failures": int(np.asarray(result.metrics.gps.c_step_failed).sum()),
         "compile_seconds": result.compile_seconds,
         "run_seconds": result.run_seconds,
+        "log_temperature": np.asarray(result.state.cost.params.log_temperature).tolist(),
+        **(distribution_summary(env, controller, demos, result.seeds) if demos else {}),
         "final_rollouts": X,
     }
+
+
+def distribution_summary(env, controller, demos: DemoBatch, seeds) -> dict:
+    """Per seed (mean over conditions): the final controllers' action entropy, the demos'
+    controller's, their gap, the demos' mean log-likelihood and the success of 20 noisy samples
+    (time-smoothed noise as in GPS; and white). ``controller``: fields [S, C, T, ...]."""
+    from diffgcl.eval.controllers import distribution_fit
+
+    keys = jnp.stack([jax.random.PRNGKey(200_000 + int(s)) for s in seeds])
+    fit = jax.jit(
+        jax.vmap(lambda c, k: distribution_fit(env, c, demos.controller, demos.X, demos.U, k))
+    )(controller, keys)
+    per_seed = {f.name: np.asarray(getattr(fit, f.name)).mean(-1) for f in fields(fit)}
+    out = {k: v.round(4).tolist() for k, v in per_seed.items()}
+    out["entropy_gap_nats_mean"] = float(per_seed["entropy_gap"].mean())
+    out["sample_success_rate"] = float(per_seed["sample_success"].mean())
+    out["sample_success_rate_white"] = float(per_seed["sample_success_white"].mean())
+    out["demo_log_likelihood_mean"] = float(per_seed["demo_log_likelihood"].mean())
+    return out
 
 
 def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=None) -> dict:
@@ -362,7 +383,7 @@ def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=
     out.mkdir(parents=True, exist_ok=True)
     (out / "config.json").write_text(json.dumps(result.config.to_dict(), indent=1, default=str))
     m = result.metrics
-    summary = run_summary(result, env)
+    summary = run_summary(result, env, demos)
     X_final = summary.pop("final_rollouts")
     if extra:
         summary.update(extra)
@@ -373,6 +394,8 @@ def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=
         "step_mult": m.gps.step_mult[:, :, :, 0],
         "entropy": m.gps.entropy[:, :, :, 0],
         "success": m.gps.success[:, :, :, 0],
+        "sample_success": m.gps.sample_success[:, :, :, 0],
+        "demo_log_likelihood": m.demo_log_likelihood[:, :, :, 0],
     }
     (out / "metrics.json").write_text(
         json.dumps(
@@ -381,6 +404,8 @@ def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=
                 "shape": "[seed, rGCL iteration, GPS iteration], condition 0",
                 **{k: np.asarray(v).tolist() for k, v in series.items()},
                 "gcl_loss": m.gcl.loss.tolist(),
+                "demo_learned_cost": m.demo_learned_cost[:, :, 0].tolist(),
+                "log_temperature": m.log_temperature.tolist(),
                 "rolled_back": m.rolled_back.tolist(),
             }
         )
@@ -402,7 +427,12 @@ def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=
         (out / "summary.json").write_text(json.dumps(summary, indent=1))
     network = make_network(result.config, env)
     params0 = jax.tree.map(lambda a: jnp.asarray(a[0]), result.state.cost.params)
-    plots.learning_curves(m, out / "learning_curves.png", title=f"rGCL {result.config.schedule}")
+    from diffgcl.control.lqr import controller_entropy
+
+    demo_entropy = float(controller_entropy(jax.tree.map(lambda a: a[0], demos.controller)))
+    plots.learning_curves(
+        m, out / "learning_curves.png", f"rGCL {result.config.schedule}", demo_entropy
+    )
     plots.arm_motion(env, m.sample_X[0], X_final[0, 0], out / "arm_motion.png")
     plots.cost_landscape(env, network, params0, np.asarray(demos.X[0]), out / "cost_landscape.png")
     return summary
@@ -412,13 +442,49 @@ def write_run_folder(out: Path, result: RunResult, env, demos: DemoBatch, extra=
 
 
 def load_demo_batch(path: Path | None, env):
-    """The demos at ``path`` (a DemoSet folder) or the built-in ones, as a DemoBatch."""
+    """The demos at ``path`` (a DemoSet folder) or the built-in ones for ``env``'s task, as a
+    DemoBatch; demos of another env, horizon or state size are a one-line error."""
     from diffgcl.algorithms.expert import builtin_demos
     from diffgcl.algorithms.rgcl import demo_batch
-    from diffgcl.data.demos import DemoSet
+    from diffgcl.data.demos import DemoError, DemoSet
 
     demos = builtin_demos(env) if path is None else DemoSet.load(path)
-    return demo_batch(demos, int(np.asarray(env.initial_states()).shape[0]))
+    where = "built-in demos" if path is None else str(path)
+    expected = (env.horizon + 1, env.dX)
+    if demos.env != env.name or demos.X.shape[1:] != expected or demos.U.shape[2] != env.dU:
+        raise DemoError(
+            f"{where}: demos of env {demos.env!r} with X{demos.X.shape}, U{demos.U.shape}; the "
+            f"{env.name} env needs X[N, {expected[0]}, {expected[1]}], U[N, {env.horizon}, "
+            f"{env.dU}]"
+        )
+    return demo_batch(demos, int(np.asarray(env.initial_states()).shape[0]), env=env)
+
+
+RUN_ENV = "env.json"
+
+
+def write_run_env(out: Path, env, options: dict, demos: Path | None) -> None:
+    """Record in a run folder the env a run trains on (its name, the options it was made with,
+    the task's fingerprint) and the demo folder (None: the built-in demos), for ``eval`` and
+    ``plot``."""
+    from diffgcl.algorithms.expert import task_fingerprint
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    record = {
+        "name": env.name,
+        "options": options,
+        "demos": None if demos is None else str(demos),
+        "task": task_fingerprint(env),
+    }
+    (out / RUN_ENV).write_text(json.dumps(record, indent=1))
+
+
+def read_run_env(run_dir: Path) -> dict:
+    """What :func:`write_run_env` recorded (``{}`` for a run folder without it: the default
+    arm and the built-in demos)."""
+    path = Path(run_dir) / RUN_ENV
+    return json.loads(path.read_text()) if path.is_file() else {}
 
 
 def config_from_dict(d: dict):
@@ -461,12 +527,7 @@ def load_run(run_dir: Path, env):
     config = config_from_dict(json.loads((run_dir / "config.json").read_text()))
     with np.load(run_dir / CHECKPOINT) as f:
         seeds = [int(s) for s in f["seeds"]]
-    summary = (
-        json.loads((run_dir / "summary.json").read_text())
-        if (run_dir / "summary.json").is_file()
-        else {}
-    )
-    demo_dir = summary.get("demos")
+    demo_dir = read_run_env(run_dir).get("demos")
     demos = load_demo_batch(Path(demo_dir) if demo_dir else None, env)
     rgcl = make_train(config, env)
     S = len(seeds)

@@ -12,10 +12,10 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 
 from diffgcl.algorithms.gps import GPSConfig
 from diffgcl.algorithms.gps_runner import mean_rollout, report_failures, run_seeds, summarise
+from diffgcl.envs.options import add_env_options, env_from_args
 
 
 def add_gps_arguments(parser: argparse.ArgumentParser) -> None:
@@ -35,6 +35,7 @@ def add_gps_arguments(parser: argparse.ArgumentParser) -> None:
         help="also run dynamics='regression' on the same seeds (default: on unless --fast)",
     )
     parser.add_argument("--torque-limit", type=float, default=None, help="arm torque cap")
+    add_env_options(parser, ("arm",))
     parser.add_argument("--chunk", type=int, default=32, help="seeds per vmapped batch")
     parser.add_argument("--first-seed", type=int, default=0)
     parser.add_argument("--x64", action="store_true", help="float64 (default float32)")
@@ -55,10 +56,12 @@ def config_from_args(args, dynamics: str | None = None) -> GPSConfig:
     )
 
 
-def make_arm(torque_limit: float | None = None):
-    from diffgcl.envs import make_env
-
-    return make_env("arm") if torque_limit is None else make_env("arm", torque_limit=torque_limit)
+def make_arm(args):
+    """The arm of ``--env-set`` (and ``--torque-limit``, the same as ``--env-set
+    torque_limit=...``)."""
+    if getattr(args, "torque_limit", None) is not None:
+        args.env_set = [*args.env_set, f"torque_limit={args.torque_limit}"]
+    return env_from_args(args)[0]
 
 
 def run_arm_gps(args) -> dict:
@@ -71,7 +74,9 @@ def run_arm_gps(args) -> dict:
     n_seeds = 4 if args.fast and args.seeds == 32 else args.seeds
     seeds = list(range(args.first_seed, args.first_seed + n_seeds))
     compare = (not args.fast) if args.compare is None else args.compare
-    env = make_arm(args.torque_limit)
+    if args.write_demos is not None:
+        _check_demo_folder(args.write_demos)
+    env = make_arm(args)
     cost = env.expert_cost
     config = config_from_args(args)
 
@@ -119,14 +124,25 @@ def run_arm_gps(args) -> dict:
     return summary
 
 
-def _write_demos(env, result, seeds, args) -> str:
-    from diffgcl.algorithms.expert import write_expert_demos
+DEMO_FILES = {"demos.npz", "meta.json"}
 
-    m = result["metrics"]
-    final = np.all(m.success[:, -1], axis=-1)
-    if not final.any():
-        raise RuntimeError("no seed succeeded; refusing to write expert demos from a failed expert")
-    i = int(np.argmax(final))
+
+def _check_demo_folder(out: Path) -> None:
+    """A demo folder may be new, empty or a dataset written before (``DemoSet.save`` replaces
+    the whole folder): anything else is refused rather than deleted."""
+    if out.exists() and (not out.is_dir() or set(p.name for p in out.iterdir()) - DEMO_FILES):
+        raise SystemExit(
+            f"diffgcl: {out} exists and is not a demo dataset; the demos would replace it — "
+            "choose a new folder"
+        )
+
+
+def _write_demos(env, result, seeds, args) -> str:
+    from diffgcl.algorithms.expert import best_expert, write_expert_demos
+
+    i = best_expert(result["metrics"])
+    if i is None:
+        raise SystemExit("diffgcl: no seed succeeded; no expert demos from a failed expert")
     controllers = jax.tree.map(lambda a: jnp.asarray(a[i]), result["state"].controller)
     demos = write_expert_demos(
         args.write_demos,
@@ -165,13 +181,16 @@ def register(subparsers) -> None:
     demos.add_argument("out", type=Path, help="dataset folder (demos.npz + meta.json)")
     demos.add_argument("--seed", type=int, default=0)
     demos.add_argument("--num-demos", type=int, default=10)
-    demos.add_argument("--iterations", type=int, default=10)
+    demos.add_argument(
+        "--iterations", type=int, default=30, help="GPS iterations (the built-in demos' 30)"
+    )
     demos.add_argument("--samples", type=int, default=5)
     demos.add_argument("--kl-step", type=float, default=0.2)
     demos.add_argument("--init-var", type=float, default=0.1)
     demos.add_argument("--smooth-sigma", type=float, default=2.0)
     demos.add_argument("--dynamics", choices=("autodiff", "regression"), default="autodiff")
     demos.add_argument("--torque-limit", type=float, default=None)
+    add_env_options(demos, ("arm",))
     demos.add_argument("--x64", action="store_true")
     demos.set_defaults(func=_demos_command)
 
@@ -182,13 +201,15 @@ def _gps_command(args) -> int:
 
 
 def _demos_command(args) -> int:
-    """Train on seeds seed, seed+1, ... (up to 8) until one succeeds; write its demos."""
+    """Train GPS on seeds seed, ..., seed+7; write the demos of the succeeding seed with the
+    lowest final cost (as the built-in demos are chosen)."""
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     from diffgcl.runtime import enable_compilation_cache
 
     enable_compilation_cache()
-    env = make_arm(args.torque_limit)
+    _check_demo_folder(args.out)
+    env = make_arm(args)
     config = config_from_args(args)
     seeds = list(range(args.seed, args.seed + 8))
     result = run_seeds(config, env, env.expert_cost, seeds, chunk=8)

@@ -1,14 +1,21 @@
 """Command line of rGCL on the arm: ``train``, ``sweep``, ``eval``, ``plot`` and the built-in demo.
 
     diffgcl train [--preset default] [--schedule v2] [--seeds 4] [--demos DIR] [--out DIR]
-                  [--set gcl.n_steps=50 ...] [--resume] [--x64]
+                  [--env arm] [--env-set x0=...,target=...] [--set gcl.n_steps=50 ...]
+                  [--resume] [--x64]
     diffgcl train --mjcf MODEL.xml --demos DEMOS.npz [--dt 0.02] [--obs state,site:tip]
                   [--policy mdgps]        your own model (diffgcl.api, docs/your_robot.md)
     diffgcl sweep --param cost_lr=1e-4,1e-3,1e-2 [--param kl_step=0.1,0.2] [--seeds 4] ...
     diffgcl sweep|train ... --local-processes 2 [--devices 1]      N processes on this host
     diffgcl sweep|train ... --coordinator HOST:PORT --num-processes N --process-id I
-    diffgcl eval RUN_DIR        success, final distance, re-optimisation, EPIC of a saved run
+    diffgcl eval RUN_DIR [--env-set ...]   success, final distance, re-optimisation, EPIC
     diffgcl plot RUN_DIR        redraw a run folder's plots
+
+``--env-set`` poses another task (:mod:`diffgcl.envs.options`), e.g. ``--env-set
+x0=0.5pi,0.25pi,0,0,target=0.3,-0.4``; without ``--demos`` the expert demos for that task are
+generated on first use and cached (:func:`diffgcl.algorithms.expert.builtin_demos`). ``train``
+records the env and its options in the run folder (``env.json``), which ``eval`` and ``plot``
+read back; ``eval --env-set`` changes them (e.g. re-optimise the learned cost from another start).
 
 Argument parsing and printing only: the host loop, run folders and demo loading live in
 :mod:`diffgcl.algorithms.runner`, the sweep in :mod:`diffgcl.algorithms.sweep`, the multi-process
@@ -31,8 +38,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from diffgcl.algorithms.runner import load_demo_batch, load_run
+from diffgcl.algorithms.runner import load_demo_batch, load_run, read_run_env, write_run_env
+from diffgcl.envs.options import add_env_options, env_from_args
 from diffgcl.eval.learned_cost import evaluate_cost
+
+RGCL_ENVS = ("arm",)  # envs with rGCL presets and evaluation so far
 
 # ---- shared helpers -----------------------------------------------------------------------------
 
@@ -72,11 +82,10 @@ def _launch_or_join(args) -> int | None:
     """``--local-processes``: the launched processes' exit status; else None after joining the
     multi-process run the options or the environment describe (if any)."""
     from diffgcl.distributed import launch_or_join
-    from diffgcl.envs import make_env
 
     def prepare():  # the built-in demos are generated (and cached) by one process, here
         _setup(args)
-        load_demo_batch(args.demos, make_env("arm"))
+        load_demo_batch(args.demos, env_from_args(args)[0])
 
     program = [sys.executable, "-m", "diffgcl.cli"]
     return launch_or_join(args, program, getattr(args, "argv", sys.argv[1:]), prepare)
@@ -99,17 +108,23 @@ def _add_common(p: argparse.ArgumentParser, seeds: int = 4) -> None:
         "--demos", type=Path, default=None, help="demo folder (default: built-in); --mjcf: npz"
     )
     p.add_argument("--x64", action="store_true", help="float64 (default float32)")
+    add_env_options(p, RGCL_ENVS)
 
 
 def _print_table(rows: list[tuple[str, dict]]) -> None:
-    print(f"{'run':<24s} {'success':>9s} {'mean final dist':>16s} {'first success':>14s}")
+    print(
+        f"{'run':<24s} {'success':>9s} {'mean final dist':>16s} {'first success':>14s} "
+        f"{'noisy samples':>14s} {'entropy gap':>12s}"
+    )
     for name, s in rows:
         first = [f for f in s["first_success_iteration"] if f is not None]
         mean_first = f"{np.mean(first):.1f}" if first else "-"
         n = len(s["success"])
+        noisy = f"{s['sample_success_rate']:.2f}" if "sample_success_rate" in s else "-"
+        gap = f"{s['entropy_gap_nats_mean']:.0f} nats" if "entropy_gap_nats_mean" in s else "-"
         print(
             f"{name:<24s} {sum(s['success']):>4d}/{n:<4d} {s['mean_final_distance']:>16.3f} "
-            f"{mean_first:>14s}"
+            f"{mean_first:>14s} {noisy:>14s} {gap:>12s}"
         )
 
 
@@ -158,14 +173,13 @@ def train_command(args) -> int:
     """Train one configuration over seeds through the host runner; write the run folder."""
     from diffgcl.algorithms.runner import train_seeds, write_run_folder
     from diffgcl.distributed import ProcessLost, abandon, barrier, is_leader
-    from diffgcl.envs import make_env
 
     if (status := _launch_or_join(args)) is not None:
         return status
     _setup(args)
     if args.mjcf is not None:
         return train_mjcf_command(args)
-    env = make_env("arm")
+    env, env_options = env_from_args(args)
     config = config_from_args(args)
     demos = load_demo_batch(args.demos, env)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
@@ -175,7 +189,8 @@ def train_command(args) -> int:
     )
     leader = is_leader()
     if leader:
-        print(f"rGCL {config.schedule} ({args.preset}) on the arm, seeds {seeds}, run folder {out}")
+        print(f"rGCL {config.schedule} ({args.preset}) on the {env.name}, seeds {seeds}, {out}")
+        write_run_env(out, env, env_options, args.demos)
     try:
         result = train_seeds(
             config,
@@ -209,7 +224,6 @@ def sweep_command(args) -> int:
     """A grid over traced hyperparameters × seeds (:func:`diffgcl.algorithms.sweep.run_sweep`)."""
     from diffgcl.algorithms.sweep import SWEEPABLE, parse_grid, run_sweep
     from diffgcl.distributed import ProcessLost, abandon, barrier, is_leader
-    from diffgcl.envs import make_env
 
     try:
         grid = parse_grid(args.param)
@@ -218,7 +232,7 @@ def sweep_command(args) -> int:
     if (status := _launch_or_join(args)) is not None:
         return status
     _setup(args)
-    env = make_env("arm")
+    env, _ = env_from_args(args)
     config = config_from_args(args)
     demos = load_demo_batch(args.demos, env)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
@@ -251,16 +265,17 @@ def sweep_command(args) -> int:
 
 
 def eval_command(args) -> int:
-    """Success, final distance, re-optimisation and EPIC of a saved run."""
+    """Success, final distance, re-optimisation and EPIC of a saved run (on the task it was
+    trained on, or with ``--env-set`` another)."""
     from diffgcl.algorithms.runner import run_summary
-    from diffgcl.envs import make_env
 
     _setup(args)
-    env = make_env("arm")
+    env, options = env_from_args(args, read_run_env(args.run))
     config, result, demos = load_run(args.run, env)
-    summary = run_summary(result, env)
+    summary = run_summary(result, env, demos)
     summary.pop("final_rollouts")
     summary.update(evaluate_cost(config, env, result.state.cost.params, result.seeds))
+    summary["env"] = {"name": env.name, "options": options}
     print(json.dumps({k: v for k, v in summary.items() if k not in ("rollbacks",)}, indent=1))
     (Path(args.run) / "eval.json").write_text(json.dumps(summary, indent=1))
     return 0
@@ -269,10 +284,9 @@ def eval_command(args) -> int:
 def plot_command(args) -> int:
     """Redraw the plots of a run folder from its checkpoint."""
     from diffgcl.algorithms.runner import write_run_folder
-    from diffgcl.envs import make_env
 
     _setup(args)
-    env = make_env("arm")
+    env, _ = env_from_args(args, read_run_env(args.run))
     _, result, demos = load_run(args.run, env)
     write_run_folder(args.run, result, env, demos)
     print(f"plots in {args.run}")
@@ -366,6 +380,13 @@ def register(subparsers) -> None:
     ev = subparsers.add_parser("eval", help="evaluate a run folder (re-optimisation, EPIC)")
     ev.add_argument("run", type=Path)
     ev.add_argument("--x64", action="store_true")
+    ev.add_argument(
+        "--env-set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="change the recorded env options (e.g. re-optimise from another start x0=...)",
+    )
     ev.set_defaults(func=eval_command)
 
     plot = subparsers.add_parser("plot", help="redraw a run folder's plots")

@@ -53,6 +53,11 @@ controller's samples (its buffer holds one controller) plus the demos in the par
 fits the cost that best separates the demos from the initial controller's behaviour; the seed did
 one such pass before its loop.
 
+The objective fits the cost at temperature ``ρ = 0`` (``e^ρ`` scales the cost, see
+:mod:`diffgcl.costs.network`): the likelihood and the regularisers shape the cost and give it a
+scale; a temperature set from the demos' precision (:mod:`diffgcl.costs.temperature`) rescales it
+for the controllers without feeding back into this fit.
+
 Everything is written for one condition and averaged over a leading condition axis ``C`` in the
 update (each condition has its own partition function).
 """
@@ -75,7 +80,7 @@ from diffgcl.costs.buffer import (
     samples_per_controller,
     stored_log_densities,
 )
-from diffgcl.costs.network import CostNetwork, CostParams
+from diffgcl.costs.network import CostNetwork, CostParams, untempered
 from diffgcl.types import Array, LinearGaussianController, PRNGKey
 
 
@@ -254,7 +259,9 @@ def gcl_objective(
     config: GCLConfig,
 ) -> tuple[Array, GCLMetrics]:
     """The regularised GCL objective for one condition's minibatches ``demos: [M_d]``,
-    ``samples: [M_s]``; returns ``(loss, metrics)`` (``grad_norm`` left at 0)."""
+    ``samples: [M_s]``; returns ``(loss, metrics)`` (``grad_norm`` left at 0). The cost is taken
+    at ``ρ = 0`` (:func:`diffgcl.costs.network.untempered`)."""
+    params = untempered(params)
     costs_of = jax.vmap(_state_and_action_costs, in_axes=(None, None, 0, 0))
     s_demo, c_demo = costs_of(network, params, demos.X, demos.U)
     s_samp, c_samp = costs_of(network, params, samples.X, samples.U)
@@ -365,7 +372,7 @@ def make_cost_learner(network: CostNetwork, config: GCLConfig) -> CostLearner:
         )
 
     def batch_loss(net: dict, norm, demos, samples) -> tuple[Array, GCLMetrics]:
-        params = CostParams(net=net, norm=norm)
+        params = CostParams(net=net, norm=norm, log_temperature=jnp.zeros((), norm.mean.dtype))
         per_condition = jax.vmap(gcl_objective, in_axes=(None, None, 0, 0, None))
         loss, metrics = per_condition(network, params, demos, samples, config)
         return loss.mean(), jax.tree.map(jnp.mean, metrics)

@@ -1,4 +1,4 @@
-"""The learned cost of Guided Cost Learning: ``c_φ(x, u, t) = ‖A y(x) + b‖² + w_u ‖u‖²``.
+"""The learned cost of Guided Cost Learning: ``c_φ(x, u, t) = e^ρ (‖A y(x) + b‖² + w_u ‖u‖²)``.
 
 ``y`` is a small ReLU network on *normalised* states (Finn et al. 2016a, §5 of the design brief):
 the features ``y: [F]`` are mixed by a learned ``A: [F, F]`` and offset ``b: [F]``, so the cost is
@@ -18,6 +18,12 @@ hidden layers (``hidden=()``) ``y`` is affine in ``z`` and the cost a general PS
 
 Optional time input: ``t / horizon`` is appended to the network's input (unnormalised), which lets
 the cost vary along the horizon.
+
+Temperature: ``e^ρ`` scales the whole cost, the inverse temperature of the maximum-entropy model
+``p(τ) ∝ exp(−c(τ))``. Like the normaliser, ``ρ`` (``CostParams.log_temperature``) is data, not a
+trained parameter: the GCL objective fits the cost at ``ρ = 0`` (:mod:`diffgcl.costs.gcl`) and
+``ρ`` is set from the demonstrations' action precision (:mod:`diffgcl.costs.temperature`), or left
+at 0, where the likelihood alone sets the cost's scale.
 
 Optional feature map (``CostNetwork.feature_map``): the network reads ``φ(x)`` instead of the raw
 state — task features a domain expert would use (for the USV: range and bearing to the pole,
@@ -59,11 +65,13 @@ class CostParams:
     """Parameters of the network cost.
 
     net: flax parameter dict (``features`` MLP, ``A: [F, F]``, ``b: [F]``, ``log_w_u: []``) — the
-    part that the GCL update trains; norm: :class:`InputNormaliser` — updated from data only.
+    part that the GCL update trains; norm: :class:`InputNormaliser` — updated from data only;
+    log_temperature: scalar ``ρ``, the cost is scaled by ``e^ρ`` — set from data only.
     """
 
     net: dict
     norm: InputNormaliser
+    log_temperature: Array
 
 
 @dataclass(frozen=True)
@@ -175,6 +183,11 @@ class FeatureNetwork(nn.Module):
         return nn.Dense(self.n_features, kernel_init=init, param_dtype=self.param_dtype)(h)
 
 
+def untempered(params: CostParams) -> CostParams:
+    """The same cost at ``ρ = 0`` (what the GCL objective fits)."""
+    return params.replace(log_temperature=jnp.zeros_like(params.log_temperature))
+
+
 def init_normaliser(dX: int, dtype=jnp.float32) -> InputNormaliser:
     """Zero mean, unit variance, no samples seen."""
     return InputNormaliser(
@@ -270,7 +283,11 @@ class CostNetwork:
             "b": jnp.zeros(F, self.param_dtype),
             "log_w_u": jnp.log(jnp.asarray(cfg.action_weight, self.param_dtype)),
         }
-        return CostParams(net=net, norm=init_normaliser(self.state_input_dim, self.param_dtype))
+        return CostParams(
+            net=net,
+            norm=init_normaliser(self.state_input_dim, self.param_dtype),
+            log_temperature=jnp.zeros((), self.param_dtype),
+        )
 
     def normalise(self, params: CostParams, x: Array) -> Array:
         """``(φ(x) − mean) / max(std, floor)`` (``φ(x) = x`` without a feature map) with the
@@ -317,6 +334,10 @@ class CostNetwork:
         A = params.net["A"]
         return A @ J, A @ y0 + params.net["b"]
 
+    def temperature(self, params: CostParams) -> Array:
+        """``e^ρ`` (scalar), held constant under differentiation (it is set from data)."""
+        return jnp.exp(jax.lax.stop_gradient(params.log_temperature))
+
     def action_weight(self, params: CostParams) -> Array:
         """``w_u`` (scalar); a constant when ``learn_action_weight`` is off."""
         log_w = params.net["log_w_u"]
@@ -340,7 +361,7 @@ class CostNetwork:
         return M.T @ M, M.T @ m, m @ m
 
     def state_cost(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
-        """``s(x, t) = ‖A y(x, t) + b‖²``: scalar.
+        """``s(x, t) = e^ρ ‖A y(x, t) + b‖²``: scalar.
 
         For an affine ``y`` through the Gram form of :meth:`affine_state_quadratic` — ``dIn²``
         products per state instead of ``F·dIn``, 8× fewer for F = 32 and dIn = 4 (under ``vmap``
@@ -351,22 +372,25 @@ class CostNetwork:
         if self.is_affine:
             z = self.network_input(params, x, t)
             G, g, c = self.affine_state_quadratic(params)
-            return z @ (G @ z) + 2.0 * (g @ z) + c
+            return self.temperature(params) * (z @ (G @ z) + 2.0 * (g @ z) + c)
         r = self.state_residual(params, x, t)
-        return r @ r
+        return self.temperature(params) * (r @ r)
 
     def residual(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
-        """Residual ``r: [F + dU]`` with ``c = ‖r‖²``: ``[A y(x, t) + b; sqrt(w_u) u]``.
+        """Residual ``r: [F + dU]`` with ``c = ‖r‖²``: ``e^{ρ/2} [A y(x, t) + b; sqrt(w_u) u]``.
 
-        For Gauss–Newton expansion: ``l_xx ≈ 2 J_xᵀJ_x``, ``l_uu = 2 w_u I``, ``l_ux ≈ 2 J_uᵀJ_x``.
+        For Gauss–Newton expansion: ``l_xx ≈ 2 J_xᵀJ_x``, ``l_uu = 2 e^ρ w_u I``,
+        ``l_ux ≈ 2 J_uᵀJ_x``.
         """
-        return jnp.concatenate(
+        r = jnp.concatenate(
             [self.state_residual(params, x, t), jnp.sqrt(self.action_weight(params)) * u]
         )
+        return jnp.sqrt(self.temperature(params)) * r
 
     def cost(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
-        """``c_φ(x, u, t) = s(x, t) + w_u ‖u‖²``: scalar."""
-        return self.state_cost(params, x, t) + self.action_weight(params) * (u @ u)
+        """``c_φ(x, u, t) = s(x, t) + e^ρ w_u ‖u‖²``: scalar."""
+        action = self.temperature(params) * self.action_weight(params) * (u @ u)
+        return self.state_cost(params, x, t) + action
 
     def bind(self, params: CostParams) -> CostFn:
         """The cost as a :data:`~diffgcl.types.CostFn` ``c(x, u, t)`` for fixed parameters."""

@@ -90,8 +90,10 @@ def make_arm_env(
     horizon: int = 100,
     mjcf: str = ARM_MJCF,
 ) -> ArmEnv:
-    """The arm env. ``x0`` may be one state [4] or conditions [C, 4]; ``torque_limit=400``
-    reproduces box2d's cap (infeasible within T = 100, see models/arm2d.xml)."""
+    """The arm env. ``x0`` may be one state [4] or conditions [C, 4]; ``target``: the joint angles
+    to reach [2]; ``torque_limit=400`` reproduces box2d's cap (infeasible within T = 100, see
+    models/arm2d.xml). On the command line: ``--env-set x0=...,target=...``
+    (:mod:`diffgcl.envs.options`)."""
     path = resolve_mjcf(mjcf)
     model = load_mjcf(path)
     require(model, path, nq=2, nv=2, nu=2)
@@ -101,8 +103,15 @@ def make_arm_env(
     mx = put_model(model)
     dtype = jnp.zeros(()).dtype
     x0 = np.atleast_2d(np.asarray(x0, dtype=float))
-    if x0.shape[1:] != (4,):
-        raise ValueError(f"arm: x0 must be [4] or [C, 4], got {x0.shape}")
+    if x0.ndim != 2 or x0.shape[1:] != (4,):
+        raise ValueError(f"arm: x0 must be [4] or [C, 4], got shape {x0.shape}")
+    target = np.asarray(target, dtype=float)
+    if target.shape != (2,):
+        raise ValueError(f"arm: target must be [2] (joint angles), got shape {target.shape}")
+    if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(target))):
+        raise ValueError("arm: x0 and target must be finite")
+    if horizon < 1:
+        raise ValueError(f"arm: horizon must be positive, got {horizon}")
     return ArmEnv(
         model=mx,
         data0=make_data(mx),

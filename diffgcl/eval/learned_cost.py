@@ -38,13 +38,14 @@ def evaluate_cost(config, env, params, seeds) -> dict:
 
 def arm_coverage(env: Env, key: PRNGKey, n: int = 1024):
     """Coverage transitions for EPIC on the arm: joint angles uniform over the box spanned by the
-    start and the target with a 0.5 rad margin, velocities ~ N(0, 1), actions ~ N(0, 2²); the
+    starts and the target with a 0.5 rad margin, velocities ~ N(0, 1), actions ~ N(0, 2²); the
     successor states come from the simulator. Returns (X, U, X_next) with [n, ·] each."""
     key_q, key_v, key_u = jax.random.split(key, 3)
     X0 = jnp.asarray(env.initial_states())
     dtype = X0.dtype
-    lo = jnp.minimum(X0[:, :2].min(0), 0.0) - 0.5
-    hi = jnp.maximum(X0[:, :2].max(0), 0.0) + 0.5
+    target = jnp.asarray(env.target, dtype)
+    lo = jnp.minimum(X0[:, :2].min(0), target) - 0.5
+    hi = jnp.maximum(X0[:, :2].max(0), target) + 0.5
     q = lo + (hi - lo) * jax.random.uniform(key_q, (n, 2), dtype)
     v = jax.random.normal(key_v, (n, env.dX - 2), dtype)
     X = jnp.concatenate([q, v], axis=-1)

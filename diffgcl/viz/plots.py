@@ -1,7 +1,9 @@
 """Plots of rGCL runs (matplotlib, Agg backend; host side only).
 
-* :func:`learning_curves` — true and learned cost of the GPS samples, step_mult and controller
-  entropy per GPS iteration (mean ± std over seeds; what GPS's GUI showed), with the success rate;
+* :func:`learning_curves` — true and learned cost of the GPS samples (and the learned cost of the
+  demos), step_mult, controller entropy, the demos' log-likelihood under the controllers and the
+  cost's temperature per GPS iteration (mean ± std over seeds; GPS's GUI showed the first four),
+  with the success rate;
 * :func:`arm_motion` — the arm's joint-space paths: the samples of every iteration coloured by
   iteration, the final controller's noise-free rollout, and a stroboscopic drawing of it;
 * :func:`cost_landscape` — the learned cost over (q1, q2) at rest (dq = 0, u = 0) beside the
@@ -41,35 +43,48 @@ def _flat(a) -> np.ndarray:
     return a.reshape(a.shape[0], -1)
 
 
-def learning_curves(metrics, path: Path, title: str = "") -> None:
-    """Four panels over GPS iterations (metrics: RGCLMetrics with [S, I, G, C] GPS fields)."""
+def learning_curves(metrics, path: Path, title: str = "", demo_entropy: float | None = None):
+    """Six panels over GPS iterations (metrics: RGCLMetrics with [S, I, G, C] GPS fields; mean ±
+    std over seeds, condition 0): the true cost of the samples with the success rate; the
+    learned cost of the samples and of the demos (its level: the cost's scale rises for both,
+    the learned cost's minimum stays near 0); step_mult; the controllers' action entropy (and the
+    demos' controller's, ``demo_entropy``); the demos' log-likelihood under the controllers; the
+    cost's log-temperature ρ."""
     plt = _plt()
+    S = np.asarray(metrics.gps.cost).shape[0]
+    G = np.asarray(metrics.gps.cost).shape[2]
+    per_update = lambda a: np.repeat(np.asarray(a)[..., None], G, axis=2).reshape(S, -1)
     panels = (
         ("true cost of samples", _flat(metrics.gps.cost), True),
-        ("learned cost of samples", _flat(metrics.learned_cost), True),
+        ("learned cost: samples (—), demos (--)", _flat(metrics.learned_cost), True),
         ("step_mult", _flat(metrics.gps.step_mult), True),
         ("controller entropy (nats)", _flat(metrics.gps.entropy), False),
+        ("demos' log-likelihood under the controllers", _flat(metrics.demo_log_likelihood), False),
+        ("cost log-temperature ρ", per_update(metrics.log_temperature), False),
     )
     its = np.arange(1, panels[0][1].shape[1] + 1)
-    fig, axes = plt.subplots(1, 4, figsize=(17, 3.8))
+    fig, axes = plt.subplots(2, 3, figsize=(15, 7.5))
+    axes = axes.ravel()
     for ax, (name, v, log) in zip(axes, panels, strict=True):
         mean, std = v.mean(0), v.std(0)
         ax.plot(its, mean, marker=".")
         ax.fill_between(its, mean - std, mean + std, alpha=0.25)
-        ax.set_title(name)
+        ax.set_title(name, fontsize=10)
         ax.set_xlabel("GPS iteration")
         if log and np.all(v > 0):
             ax.set_yscale("log")
-    success = np.asarray(metrics.gps.success).all(axis=-1).reshape(len(_flat(metrics.gps.cost)), -1)
+    demo_cost = per_update(np.asarray(metrics.demo_learned_cost)[..., 0])
+    axes[1].plot(its, demo_cost.mean(0), "k--", lw=1)
+    if demo_entropy is not None:
+        axes[3].axhline(demo_entropy, color="k", ls="--", lw=1, label="demos' controller")
+        axes[3].legend(loc="best", fontsize=8)
+    success = np.asarray(metrics.gps.success).all(axis=-1).reshape(S, -1)
     twin = axes[0].twinx()
     twin.plot(its, success.mean(0), color="tab:green", ls="--", label="success rate")
     twin.set_ylim(-0.05, 1.05)
     twin.legend(loc="upper right")
-    fig.suptitle(f"{title} ({v.shape[0]} seeds, mean ± std)".strip())
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
+    fig.suptitle(f"{title} ({S} seeds, mean ± std)".strip())
+    _save(fig, path)
 
 
 def arm_motion(env, sample_X, X_final, path: Path) -> None:
@@ -113,8 +128,9 @@ def cost_landscape(env, network, params, demo_X, path: Path, n: int = 81) -> Non
     """Learned vs expert per-step cost at rest over a (q1, q2) grid; demo_X: [N, T+1, dX]."""
     plt = _plt()
     demo_X = np.asarray(demo_X)
-    lo = np.minimum(demo_X[..., :2].min(axis=(0, 1)), 0.0) - 0.7
-    hi = np.maximum(demo_X[..., :2].max(axis=(0, 1)), 0.0) + 0.7
+    target = np.asarray(env.target)
+    lo = np.minimum(demo_X[..., :2].min(axis=(0, 1)), target) - 0.7
+    hi = np.maximum(demo_X[..., :2].max(axis=(0, 1)), target) + 0.7
     q1, q2 = np.meshgrid(np.linspace(lo[0], hi[0], n), np.linspace(lo[1], hi[1], n))
     dtype = jnp.asarray(env.initial_states()).dtype
     X = jnp.asarray(
