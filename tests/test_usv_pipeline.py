@@ -120,6 +120,17 @@ def test_bag_demos_in_the_task_layout(tiny_bags):
     np.testing.assert_array_equal(
         np.asarray(batch.controller.K[0]), np.asarray(batch.controller.K[1])
     )
+    assert batch.dynamics is None
+    # With the env: the hull linearised about each demo (the temperature calibration's input);
+    # B maps a normalised action to the state as the env's own step does (finite differences).
+    dyn = U.demo_batch_pooled(task_demos, env=env).dynamics
+    T = task.horizon
+    assert dyn.A.shape == (2, T, env.dX, env.dX) and dyn.B.shape == (2, T, env.dX, env.dU)
+    x, u, h = jnp.asarray(task_demos.X[0, 5]), jnp.asarray(task_demos.U[0, 5]), 1e-4
+    fd = [(env.step(x, u.at[j].add(h)) - env.step(x, u.at[j].add(-h))) / (2 * h) for j in range(2)]
+    np.testing.assert_allclose(
+        np.asarray(dyn.B[0, 5]), np.stack([np.asarray(c) for c in fd], 1), rtol=1e-3, atol=1e-6
+    )
     # Held-out situations lie within the demos' ranges and differ from every demo start.
     ranges = U.SituationRanges.of(task_demos)
     x0 = np.asarray(U.heldout_starts(env, ranges, jax.random.PRNGKey(0), 16))

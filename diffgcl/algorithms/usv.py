@@ -226,9 +226,10 @@ def usv_demo_set(env: UsvEnv, windows: DemoSet, radii: np.ndarray) -> DemoSet:
     return DemoSet(X=X, U=U, O=O, mask=windows.mask, dt=windows.dt, env="usv", episodes=episodes)
 
 
-def demo_batch_pooled(demos: DemoSet, dtype=None) -> DemoBatch:
+def demo_batch_pooled(demos: DemoSet, dtype=None, env: UsvEnv | None = None) -> DemoBatch:
     """A :class:`~diffgcl.algorithms.rgcl.DemoBatch` with one demo per condition [C, 1, ...] and
-    the demonstrators' controller fitted on all demos pooled, shared by every condition."""
+    the demonstrators' controller fitted on all demos pooled, shared by every condition; given
+    the ``env``, its dynamics linearised about each demo (for ``temperature='demos'``)."""
     from diffgcl.costs.demo_controller import fit_demo_controller
 
     dtype = dtype or jnp.zeros(()).dtype
@@ -237,7 +238,14 @@ def demo_batch_pooled(demos: DemoSet, dtype=None) -> DemoBatch:
     pooled = jax.jit(fit_demo_controller)(X, U)
     C = X.shape[0]
     controller = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), pooled)
-    return DemoBatch(X=X[:, None], U=U[:, None], controller=controller)
+    dynamics = None
+    if env is not None:
+        from diffgcl.dynamics.autodiff import fit_dynamics
+
+        dynamics = jax.jit(jax.vmap(lambda x, u: fit_dynamics(env.step, x, u)))(
+            X[:, None], U[:, None]
+        )
+    return DemoBatch(X=X[:, None], U=U[:, None], controller=controller, dynamics=dynamics)
 
 
 # ---- held-out situations and evaluation ---------------------------------------------------------
@@ -478,7 +486,8 @@ def run_usv(
 
     env = make_task_env(windows, radii, params, task)
     task_demos = usv_demo_set(env, windows, radii)
-    batch = demo_batch_pooled(task_demos)
+    needs_dynamics = rgcl_config.temperature != "likelihood" and "rgcl" in config.methods
+    batch = demo_batch_pooled(task_demos, env=env if needs_dynamics else None)
     ranges = SituationRanges.of(task_demos, radius=(float(radii.min()), float(radii.max())))
     probe = make_task_env(windows, radii, truth, task, horizon=task.horizon + config.eval_extra)
     x0_heldout = np.asarray(
