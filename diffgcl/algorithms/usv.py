@@ -350,13 +350,17 @@ def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
     }
 
 
-def policy_tracks(env: UsvEnv, policy, params, x0, key: PRNGKey) -> np.ndarray:
-    """Noise-free-action rollouts [B, T+1, 11] of a global policy from ``x0`` with the env's
-    sensor noise in its observations (the boat's sensors are never noise-free)."""
+def policy_tracks(env: UsvEnv, policy, params, x0, keys: Array) -> np.ndarray:
+    """Noise-free-action rollouts [S, B, T+1, 11] of global policies (``params`` with a leading
+    seed axis S, one key each in ``keys: [S, 2]``) from ``x0: [B, 11]``, with the env's sensor
+    noise in their observations (the boat's sensors are never noise-free); one compiled program
+    for all seeds."""
     from diffgcl.eval.policy import policy_rollouts
 
-    run = jax.jit(lambda p, x, k: policy_rollouts(env, policy, p, x, k, obs_noise=True))
-    return np.asarray(run(params, jnp.asarray(x0), key).X)
+    def one(p, k):
+        return policy_rollouts(env, policy, p, jnp.asarray(x0), k, obs_noise=True).X
+
+    return np.asarray(jax.jit(jax.vmap(one))(params, keys))
 
 
 # ---- the whole run ------------------------------------------------------------------------------
@@ -511,18 +515,9 @@ def run_usv(
     eval_key = jax.random.PRNGKey(config.heldout_seed + 1)
 
     def judge(name: str, policy, params) -> None:
-        S = len(config.seeds)
-        tracks = np.stack(
-            [
-                policy_tracks(
-                    env_true,
-                    policy,
-                    jax.tree.map(lambda a, s=s: jnp.asarray(a[s]), params),
-                    x0_heldout,
-                    jax.random.fold_in(eval_key, s),
-                )
-                for s in range(S)
-            ]
+        keys = jnp.stack([jax.random.fold_in(eval_key, s) for s in range(len(config.seeds))])
+        tracks = policy_tracks(
+            env_true, policy, jax.tree.map(jnp.asarray, params), x0_heldout, keys
         )
         run.policies[name] = (policy, params)
         run.tracks[name] = tracks
