@@ -160,8 +160,8 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
     rgcl = with_overrides(
         usv_preset(),
         [
-            "iterations=3",
             "freeze_last=1",
+            "iterations=3",
             "gcl.pretrain_steps=20",
             "gcl.n_steps=5",
             "policy.s_step.n_steps=20",
@@ -177,7 +177,8 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
         for key in ("collision_rate", "return_to_course_rate", "port_share"):
             assert 0.0 <= s[key] <= 1.0
         assert np.isfinite(s["path_distance_to_demos_median_m"])
-        assert run.tracks[name].shape == (1, 4, config.task.horizon + 1, run.env.dX)
+        T_eval = config.task.horizon + config.eval_extra  # judged past the window
+        assert run.tracks[name].shape == (1, 4, T_eval + 1, run.env.dX)
     assert run.summary["hull_identification"]["max_relative_error"] < 0.5
     out = tmp_path / "run"
     out.mkdir()
