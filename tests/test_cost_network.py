@@ -220,3 +220,37 @@ def test_linear_skip_features_and_weight_decay_mask():
     )
     old_mlp = params.net["features"]["mlp"]["Dense_0"]["kernel"]
     np.testing.assert_allclose(features["mlp"]["Dense_0"]["kernel"], old_mlp * (1 - 0.05))
+
+
+def test_weighted_form_is_a_positive_weighting_of_squared_residuals():
+    """form='weighted': s(x) = Σ_k e^θ_k (x_k / rms_k)², rms from the data's moments; the
+    Gauss–Newton expansion is exact for it (the residual is linear in x here) and GCL's
+    optimiser decays none of its parameters."""
+    from diffgcl.costs.gcl import GCLConfig, make_cost_learner
+
+    config = CostNetworkConfig(form="weighted", action_weight=0.2)
+    net = CostNetwork(config, dX, dU, jnp.float64)
+    data = jax.random.normal(jax.random.key(1), (50, dX)) * jnp.array([1.0, 3.0, 0.5]) + 0.4
+    params = net.init(jax.random.key(0)).replace(norm=net.fit_normaliser(data))
+    params = params.replace(net={**params.net, "log_w": jnp.array([0.3, -1.0, 2.0])})
+    rms = np.sqrt(np.mean(np.asarray(data) ** 2, axis=0))
+    x, u = jnp.array([0.7, -2.0, 0.1]), jnp.array([0.5, -0.25])
+    w = np.exp([0.3, -1.0, 2.0])
+    expected = np.sum(w * (np.asarray(x) / rms) ** 2) + 0.2 * float(u @ u)
+    np.testing.assert_allclose(float(net.cost(params, x, u)), expected, rtol=1e-12)
+    np.testing.assert_allclose(net.feature_weights(params), w / rms**2, rtol=1e-12)
+    # Every weight positive whatever θ: the cost's minimum is at x = 0.
+    assert float(net.state_cost(params, jnp.zeros(dX))) == 0.0
+    X = jax.random.normal(jax.random.key(2), (T + 1, dX))
+    U = jax.random.normal(jax.random.key(3), (T, dU))
+    gn, full = net.expand(params, X, U), net.expand(params, X, U, gauss_newton=False)
+    np.testing.assert_allclose(gn.l_xx, full.l_xx, rtol=1e-10)
+    np.testing.assert_allclose(gn.l_xx[0], 2 * np.diag(w / rms**2), rtol=1e-10)
+    learner = make_cost_learner(net, GCLConfig(weight_decay=0.5, learning_rate=0.1))
+    state = learner.init(jax.random.key(0), params)
+    zero = jax.tree.map(jnp.zeros_like, params.net)
+    updates, _ = learner.optimiser.update(zero, state.opt_state, params.net)
+    new = optax.apply_updates(params.net, updates)
+    np.testing.assert_allclose(new["log_w"], params.net["log_w"])
+    with pytest.raises(ValueError, match="form"):
+        CostNetworkConfig(form="sum")

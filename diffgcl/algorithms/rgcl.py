@@ -291,13 +291,18 @@ class RGCL(NamedTuple):
 
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
     """The cost network of ``config`` for ``env`` (parameters in the run's float dtype; with
-    ``network.features == "env"`` it reads ``env.cost_features``)."""
+    ``network.features == "env"`` it reads ``env.cost_features``, or ``env.cost_residuals`` for
+    the weighted form)."""
     dtype = jnp.asarray(env.initial_states()).dtype
     features = None
     if config.network.features == "env":
-        if not hasattr(env, "cost_features"):
-            raise ValueError(f"env {env.name!r} has no cost_features for network.features='env'")
-        features = env.cost_features
+        name = "cost_residuals" if config.network.form == "weighted" else "cost_features"
+        if not hasattr(env, name):
+            raise ValueError(
+                f"env {env.name!r} has no {name} for network.features='env' "
+                f"(form {config.network.form!r})"
+            )
+        features = getattr(env, name)
     return CostNetwork(config.network, env.dX, env.dU, param_dtype=dtype, feature_map=features)
 
 

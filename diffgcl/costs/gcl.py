@@ -345,11 +345,13 @@ def weight_decay_mask(net: dict) -> dict:
     """Weight decay on the output map ``A`` and every kernel under ``features`` except the
     linear branch (``linear_skip``); never on biases or the action weight."""
     mask = jax.tree.map(lambda _: False, net)
-    mask["A"] = True
-    mask["features"] = jax.tree_util.tree_map_with_path(
-        lambda path, _: path[-1].key == "kernel" and path[0].key != "linear",
-        net["features"],
-    )
+    if "A" in net:
+        mask["A"] = True
+    if "features" in net:
+        mask["features"] = jax.tree_util.tree_map_with_path(
+            lambda path, _: path[-1].key == "kernel" and path[0].key != "linear",
+            net["features"],
+        )
     return mask
 
 

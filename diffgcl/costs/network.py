@@ -33,6 +33,16 @@ differentiable function of ``x`` (Gauss–Newton and the LQR differentiate throu
 quadratic in the raw state cannot say "keep away from the pole"; a quadratic in such features
 can.
 
+Weighted form (``CostNetworkConfig.form = "weighted"``): instead of the Gram form, the state cost
+is a non-negative weighted sum of squared residuals ``s(x) = e^ρ Σ_k e^{θ_k} (ρ_k(x) / rms_k)²``,
+where each residual ``ρ_k`` is zero where a domain expert is content (for the USV: cross-track and
+heading error, speed error, soft proximity to the pole; :meth:`diffgcl.envs.usv.UsvEnv.
+cost_residuals`), ``rms_k`` is its root mean square on the data (from the normaliser: ``var +
+mean²``) and the log weights ``θ: [K]`` are what GCL learns. This is maximum-entropy IRL's linear
+cost in features, so matching the demos' feature expectations is what the likelihood asks; and
+with every weight positive the cost keeps its valley where every residual is zero (e.g. back on
+the course line once the pole is passed) whatever the weights learn.
+
 The network is flax linen; everything outside it (``CostParams``, :class:`CostNetwork`) is plain,
 so the cost is a pure function of an explicit parameter pytree that jit/vmap/scan carry around.
 """
@@ -87,7 +97,10 @@ class CostNetworkConfig:
     the input; std_floor: lower bound of the normaliser's standard deviation (in the state's own
     units); a_scale: standard deviation of the initial
     entries of ``A`` times ``sqrt(F)``; features: ``"state"`` — the network reads the raw
-    state — or ``"env"`` — it reads the env's ``cost_features(x)`` (task features).
+    state — or ``"env"`` — it reads the env's ``cost_features(x)`` (task features), or with the
+    weighted form its ``cost_residuals(x)``; form: ``"gram"`` (``‖A y + b‖²``, the paper's) or
+    ``"weighted"`` (learned non-negative weights on squared residuals; module docstring; hidden,
+    n_features, identity_init, linear_skip, time_input and a_scale are unused).
     """
 
     hidden: tuple[int, ...] = (32, 32)
@@ -101,8 +114,14 @@ class CostNetworkConfig:
     std_floor: float = 1e-2
     a_scale: float = 1.0
     features: str = "state"
+    form: str = "gram"
 
     def __post_init__(self):
+        if self.form not in ("gram", "weighted"):
+            raise ValueError(
+                f"CostNetworkConfig: form {self.form!r}; 'gram' (‖A y + b‖²) or 'weighted' "
+                "(learned weights on squared residuals)"
+            )
         if self.features not in ("state", "env"):
             raise ValueError(
                 f"CostNetworkConfig: features {self.features!r}; 'state' (the raw state) or "
@@ -266,6 +285,16 @@ class CostNetwork:
         """Random parameters (identity path if configured), unit normaliser."""
         cfg = self.config
         d = self.state_input_dim
+        if cfg.form == "weighted":
+            net = {
+                "log_w": jnp.zeros(d, self.param_dtype),
+                "log_w_u": jnp.log(jnp.asarray(cfg.action_weight, self.param_dtype)),
+            }
+            return CostParams(
+                net=net,
+                norm=init_normaliser(d, self.param_dtype),
+                log_temperature=jnp.zeros((), self.param_dtype),
+            )
         if cfg.linear_skip and cfg.n_features <= d:
             raise ValueError(f"linear_skip needs n_features > the state input's size {d}")
         too_narrow = min(cfg.hidden, default=2 * d) < 2 * d or cfg.n_features < d
@@ -314,8 +343,8 @@ class CostNetwork:
 
     @property
     def is_affine(self) -> bool:
-        """Whether ``y`` is affine in the network input (no hidden layers)."""
-        return not self.config.hidden
+        """Whether ``y`` is affine in the network input (no hidden layers; Gram form)."""
+        return self.config.form == "gram" and not self.config.hidden
 
     def affine_residual_map(self, params: CostParams) -> tuple[Array, Array]:
         """``(M: [F, dIn], m: [F])`` with ``A y(z) + b = M z + m`` for an affine ``y``.
@@ -348,11 +377,29 @@ class CostNetwork:
     def state_residual(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
         """``A y(x, t) + b``: [F] (as ``M z + m`` when ``y`` is affine; under ``vmap`` over
         states ``M`` is formed once, since it does not depend on the state)."""
+        if self.config.form == "weighted":
+            return self.weighted_residual(params, x)
         z = self.network_input(params, x, t)
         if self.is_affine:
             M, m = self.affine_residual_map(params)
             return M @ z + m
         return params.net["A"] @ self._apply_features(params, z) + params.net["b"]
+
+    def residual_scale(self, params: CostParams) -> Array:
+        """``rms_k = sqrt(var_k + mean_k²)`` of the residuals on the data seen (floored at
+        ``std_floor``), held constant: [K] (weighted form)."""
+        norm = jax.lax.stop_gradient(params.norm)
+        return jnp.maximum(jnp.sqrt(norm.var + norm.mean**2), self.config.std_floor)
+
+    def feature_weights(self, params: CostParams) -> Array:
+        """The weighted form's per-residual weights ``e^θ / rms²``: [K] (cost per squared unit
+        of each residual, at ρ = 0)."""
+        return jnp.exp(params.net["log_w"]) / self.residual_scale(params) ** 2
+
+    def weighted_residual(self, params: CostParams, x: Array) -> Array:
+        """``e^{θ/2} ⊙ ρ(x) / rms``: [K] (weighted form)."""
+        rho = self.state_input(x)
+        return jnp.exp(0.5 * params.net["log_w"]) * rho / self.residual_scale(params)
 
     def affine_state_quadratic(self, params: CostParams) -> tuple[Array, Array, Array]:
         """``(G: [dIn, dIn], g: [dIn], c: [])`` with ``‖M z + m‖² = zᵀGz + 2gᵀz + c`` (``G = MᵀM``,

@@ -65,6 +65,7 @@ from diffgcl.sim.sensors import (
 from diffgcl.types import Array, PRNGKey
 
 IX_RADIUS = 10
+PROXIMITY_SCALES = (2.0, 5.0, 10.0, 20.0, 40.0)  # m, of the weighted cost's proximity residuals
 DX = 11
 OBSERVATIONS = ("full", "radar", "ranges")
 STATE_NAMES = (*hull_sim.STATE_NAMES, "pole_radius")
@@ -276,6 +277,33 @@ class UsvEnv:
                 h[hull_sim.IX_NOZZLE] / p.max_nozzle,
             ]
         )
+
+    def cost_residuals(self, x: Array) -> Array:
+        """Residuals a sailor wants at zero, for the learned cost's weighted form (the cost is
+        a learned non-negative weighting of their squares; :mod:`diffgcl.costs.network`): [10].
+
+        cross-track error (m); 2 sin(ψ/2) (heading error; its square is 2(1 − cos ψ)); surge
+        speed minus cruise, sway speed (m/s), yaw rate (rad/s); and proximity to the pole on
+        five length scales, exp(−clearance / 2ℓ) for ℓ = 2, 5, 10, 20, 40 m (squared:
+        exp(−clearance/ℓ); a positive mix of them is any smooth, convex, decreasing profile of
+        the clearance, so the weights learn how close the demonstrators pass). The clearance is
+        floored at −2 m, so a deep collision does not overflow.
+        """
+        h = x[:IX_RADIUS]
+        nu = hull_sim.body_velocity(h)
+        clearance = jnp.maximum(self.clearance(x), -2.0)
+        scales = jnp.asarray(PROXIMITY_SCALES, x.dtype)
+        proximity = jnp.exp(-clearance / (2.0 * scales))
+        course = jnp.stack(
+            [
+                h[hull_sim.IX_PY],
+                2.0 * jnp.sin(0.5 * h[hull_sim.IX_PSI]),
+                nu[0] - self.cruise_speed,
+                nu[1],
+                nu[2],
+            ]
+        )
+        return jnp.concatenate([course, proximity])
 
     def start_state(self, pole_xy, radius, speed, heading: float = 0.0, cross_track: float = 0.0):
         """x0: [11] at (0, cross_track) heading ``heading`` at ``speed`` m/s (thrust lagged at the
