@@ -53,11 +53,11 @@ def fast_configs():
     return main, radar
 
 
-def full_configs(seeds, heldout: int):
+def full_configs(seeds, heldout: int, heldout_seed: int = 1000):
     from diffgcl.algorithms.usv import UsvRunConfig, UsvTaskConfig
 
     task = UsvTaskConfig()
-    main = UsvRunConfig(task=task, seeds=tuple(seeds), heldout=heldout)
+    main = UsvRunConfig(task=task, seeds=tuple(seeds), heldout=heldout, heldout_seed=heldout_seed)
     radar = dataclasses.replace(
         main,
         task=dataclasses.replace(task, sets=("1", "2"), observation="radar"),
@@ -91,6 +91,13 @@ def main(argv=None) -> int:
     parser.add_argument("--bags", type=Path, default=None, help="your bags (default: built-in)")
     parser.add_argument("--topics", type=Path, default=None, help="topic map YAML for --bags")
     parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--first-seed", type=int, default=0, help="training seeds start here")
+    parser.add_argument(
+        "--heldout-seed",
+        type=int,
+        default=1000,
+        help="draws the held-out situations (1000: the report set; tune on another)",
+    )
     parser.add_argument("--heldout", type=int, default=256, help="held-out situations")
     parser.add_argument("--no-radar", action="store_true", help="skip the radar-only variant")
     parser.add_argument("--methods", default=None, help="of rgcl, expert, bc (default: all)")
@@ -115,8 +122,9 @@ def main(argv=None) -> int:
     else:
         demos, folder = builtin_demos(fast=args.fast)
         manifest, truth = folder / "manifest.json", true_params()
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
     main_cfg, radar_cfg = (
-        fast_configs() if args.fast else full_configs(range(args.seeds), args.heldout)
+        fast_configs() if args.fast else full_configs(seeds, args.heldout, args.heldout_seed)
     )
     if args.methods is not None:
         main_cfg = dataclasses.replace(main_cfg, methods=tuple(args.methods.split(",")))

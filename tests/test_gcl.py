@@ -76,6 +76,29 @@ def test_gradient_matches_explicit_gcl_gradient():
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-11)
 
 
+def test_without_importance_weights_the_gradient_is_feature_matching():
+    """importance_weights=False: ∇L = mean_demo ∂c − mean_sample ∂c, whatever the samples' log q
+    (for the weighted form, demos' minus samples' mean squared residuals times the weights);
+    demos in the partition are refused."""
+    config = GCLConfig(importance_weights=False, demos_in_partition=False)
+    net = CostNetwork(CostNetworkConfig(form="weighted"), dX, dU, jnp.float64)
+    params = net.init(jax.random.key(0))
+    params = params.replace(net={**params.net, "log_w": jnp.array([0.4, -0.7])})
+    demos = random_set(jax.random.key(1), 3)
+    samples = random_set(jax.random.key(2), 5, log_q_scale=30.0)
+    loss, metrics = gcl_objective(net, params, demos, samples, config)
+    grad = jax.grad(lambda n: gcl_objective(net, params.replace(net=n), demos, samples, config)[0])
+    g = grad(params.net)
+    w = np.exp([0.4, -0.7])
+    F_demo = np.sum(np.asarray(demos.X) ** 2, axis=1).mean(0)  # [dX] mean Σ_t x_t²
+    F_samp = np.sum(np.asarray(samples.X) ** 2, axis=1).mean(0)
+    np.testing.assert_allclose(g["log_w"], w * (F_demo - F_samp), rtol=1e-10)
+    np.testing.assert_allclose(float(metrics.ess), 5.0, rtol=1e-10)  # every sample weighs alike
+    np.testing.assert_allclose(float(metrics.log_partition), 0.0, atol=1e-9)
+    with pytest.raises(ValueError, match="demos_in_partition"):
+        GCLConfig(importance_weights=False)
+
+
 def gaussian_controller(k, var):
     K = jnp.zeros((T, dU, dX)).at[:, 0, 0].set(-0.5)
     return make_controller(K, jnp.full((T, dU), k), jnp.full((T, dU, dU), var))

@@ -199,20 +199,20 @@ def test_network_on_task_features_is_the_network_on_the_features():
 def test_cost_residuals_square_to_the_sailors_terms():
     """The weighted cost's residuals: squared heading residual = 2(1 − cos ψ) (periodic), the
     proximity residuals square to exp(−clearance/ℓ), and all are differentiable in the state."""
-    from diffgcl.envs.usv import PROXIMITY_SCALES
+    from diffgcl.envs.usv import COST_RESIDUAL_NAMES, PROXIMITY_SCALES
 
     usv = make_usv_env(horizon=20)
     X = jnp.concatenate([random_states(jax.random.PRNGKey(3), 16), jnp.full((16, 1), 0.6)], 1)
     X = X.astype(usv.x0.dtype)
     R = jax.vmap(usv.cost_residuals)(X)
-    assert R.shape == (16, 5 + len(PROXIMITY_SCALES))
+    assert R.shape == (16, 6 + len(PROXIMITY_SCALES)) == (16, len(COST_RESIDUAL_NAMES))
     psi = np.asarray(X[:, hull_sim.IX_PSI])
     np.testing.assert_allclose(np.asarray(R[:, 1]) ** 2, 2 * (1 - np.cos(psi)), rtol=1e-5)
     np.testing.assert_allclose(np.asarray(R[:, 0]), np.asarray(X[:, hull_sim.IX_PY]))
     clearance = np.maximum(np.asarray(jax.vmap(usv.clearance)(X)), -2.0)
     for k, ell in enumerate(PROXIMITY_SCALES):
         np.testing.assert_allclose(
-            np.asarray(R[:, 5 + k]) ** 2, np.exp(-clearance / ell), rtol=1e-5
+            np.asarray(R[:, 6 + k]) ** 2, np.exp(-clearance / ell), rtol=1e-5
         )
     x_wrapped = X[0].at[hull_sim.IX_PSI].add(2 * np.pi)
     np.testing.assert_allclose(
@@ -222,4 +222,7 @@ def test_cost_residuals_square_to_the_sailors_terms():
         atol=1e-6,
     )
     J = jax.jacfwd(usv.cost_residuals)(X[0])
-    assert J.shape == (10, usv.dX) and np.isfinite(np.asarray(J)).all()
+    assert J.shape == (11, usv.dX) and np.isfinite(np.asarray(J)).all()
+    np.testing.assert_allclose(
+        np.asarray(R[:, 3]), np.asarray(X[:, hull_sim.IX_VX]) - usv.cruise_speed, rtol=1e-6
+    )

@@ -158,9 +158,16 @@ def default(schedule: str = "v2") -> RGCLConfig:
 
 def usv() -> RGCLConfig:
     """The USV task (:mod:`diffgcl.algorithms.usv`): rGCL v2 on the hull with normalised actions,
-    a cost on the env's task features (range and bearing to the pole, closing speed, cross-track
-    and heading error, speed, jets; ``network.features="env"``) and a global MDGPS policy on the
-    boat's observations (noisy sensors in its training samples).
+    a cost of learned non-negative weights on a sailor's squared residuals (cross-track and
+    heading error, speed errors, sway, yaw rate, proximity to the pole on 2, 5 and 10 m;
+    ``network.form="weighted"``, :meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`) and a global
+    MDGPS policy on the boat's observations (noisy sensors in its training samples).
+
+    The weighted form, not the Gram form on task features (``cost_features``): the Gram form's
+    quadratic learned no valley along the course after the pole, and its policy circled (0 %
+    back on course, 3.5× the demos' clearance; docs/usv.md). With proximity scales of 20 and
+    40 m as well, the learned weights grew a halo around the pole and the controllers circled
+    in front of it.
 
     Differences from :func:`default` and why: ``init_var`` 0.01 and ``kl_step`` 1.0 (actions are
     normalised to the actuators' ranges; DESIGN §7b measured GPS on the hull succeeding with these);
@@ -180,8 +187,7 @@ def usv() -> RGCLConfig:
         iterations=30,
         gps=GPSConfig(num_samples=5, kl_step=1.0, init_var=0.01, gauss_newton=True, maxent=False),
         network=CostNetworkConfig(
-            hidden=(),
-            n_features=24,
+            form="weighted",
             action_weight=0.3,
             learn_action_weight=False,
             features="env",

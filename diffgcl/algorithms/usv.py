@@ -432,6 +432,21 @@ def _batched(fn, seeds, *args):
     return jax.tree.map(np.asarray, out), time.perf_counter() - t0
 
 
+def learned_cost_weights(network, params) -> dict:
+    """The weighted-form cost per residual (:data:`diffgcl.envs.usv.COST_RESIDUAL_NAMES`), per
+    training seed (``params`` with a leading seed axis): ``per_unit`` — its weight per squared
+    unit of the residual, at the cost's temperature; ``log_w`` — the learned θ (0 at the start,
+    where every residual weighs 1 per squared RMS of the data)."""
+    from diffgcl.envs.usv import COST_RESIDUAL_NAMES
+
+    w = np.asarray(jax.vmap(lambda p: network.feature_weights(p) * network.temperature(p))(params))
+    theta = np.asarray(params.net["log_w"])
+    return {
+        name: {"per_unit": w[:, k].tolist(), "log_w": theta[:, k].tolist()}
+        for k, name in enumerate(COST_RESIDUAL_NAMES)
+    }
+
+
 def identify_hull(demos: DemoSet, config=None, truth=None) -> tuple[object, dict]:
     """The hull identified from ``demos`` (:func:`diffgcl.data.sysid.identify`) and a summary:
     the fitted values and, given the ``truth``, the largest relative error."""
@@ -548,6 +563,8 @@ def run_usv(
             "controllers_on_demo_starts": ctrl,
             "true_cost_per_iteration": np.asarray(metrics.gps.cost).mean((0, 2)).tolist(),
         }
+        if rgcl.network.config.form == "weighted" and rgcl_config.network.features == "env":
+            summary["rgcl"]["cost_weights"] = learned_cost_weights(rgcl.network, state.cost.params)
         run.rgcl_state, run.rgcl = state, rgcl
         judge("rgcl", rgcl.policy_phases.policy, state.policy.params)
 

@@ -44,6 +44,18 @@ make every sequence jagged and the penalty would fight ``w_u`` rather than shape
   gradient there, and a demonstrator that overshoots (the arm's GPS expert does, by 0.14 rad)
   drags the minimum into the overshoot.
 
+Without importance weights (``GCLConfig.importance_weights = False``) the samples are taken as
+draws from the current cost's own MaxEnt distribution ``p_φ(τ) ∝ exp(−c_φ(τ))`` — the LQR
+controllers optimised for the cost are its Laplace approximation — so every sample weighs the
+same: ``log q_j := −c_φ(τ_j)`` (held constant), the log partition term is 0 and its gradient is the
+samples' mean ``∂c/∂φ``. The update is then MaxEnt IRL's feature-expectation matching
+(``mean_demo ∂c/∂φ − mean_sample ∂c/∂φ``; for a cost linear in its parameters, demos' minus
+samples' feature sums), with no importance weights to degenerate: over T = 300 steps of a 2-D
+action the proposal densities of a sample batch spread over tens of nats, and the
+self-normalised weights can rest on one sample. The estimate is biased by the controllers'
+KL step (they lag the cost) and is only as good as the Laplace approximation; the demos are not
+draws from ``p_φ`` and stay out of the partition.
+
 All are averaged over the trajectories they apply to. The update is optax Adam on ``params.net``
 (the input normaliser is data, not a parameter) with ``n_steps`` minibatch steps in ``lax.scan``.
 
@@ -96,7 +108,10 @@ class GCLConfig:
     nonlinear features towards zero; fusion: mixture proposal (else
     each sample's own proposal); demos_in_partition: append the demo batch to the partition term;
     mixture: ``"counts"`` or ``"uniform"`` (see the module docstring); lcr_weight, mono_weight,
-    mono_slack: regularisers; goal_weight: the goal regulariser (see the module docstring).
+    mono_slack: regularisers; goal_weight: the goal regulariser (see the module docstring);
+    importance_weights: weigh the partition's samples by ``exp(−c)/q`` (GCL); ``False`` treats
+    them as draws from the current cost's own MaxEnt distribution (the LQR controllers
+    optimised for it stand in for it), so each weighs the same (module docstring).
     """
 
     n_steps: int = 20
@@ -113,6 +128,14 @@ class GCLConfig:
     mono_weight: float = 0.0
     mono_slack: float = 1.0
     goal_weight: float = 0.0
+    importance_weights: bool = True
+
+    def __post_init__(self):
+        if not self.importance_weights and self.demos_in_partition:
+            raise ValueError(
+                "GCLConfig: importance_weights=False treats the samples as draws from the cost's "
+                "own MaxEnt distribution; the demos are not, so set demos_in_partition=False"
+            )
 
 
 @struct.dataclass
@@ -267,7 +290,8 @@ def gcl_objective(
     s_samp, c_samp = costs_of(network, params, samples.X, samples.U)
 
     demo_cost = _masked_mean(c_demo, demos.valid)
-    a_samp = jnp.where(samples.valid, -c_samp - samples.log_q, -jnp.inf)
+    log_q = samples.log_q if config.importance_weights else -jax.lax.stop_gradient(c_samp)
+    a_samp = jnp.where(samples.valid, -c_samp - log_q, -jnp.inf)
     mask = samples.valid
     if config.demos_in_partition:
         a_demo = jnp.where(demos.valid, -c_demo - demos.log_q, -jnp.inf)

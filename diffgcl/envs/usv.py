@@ -65,7 +65,16 @@ from diffgcl.sim.sensors import (
 from diffgcl.types import Array, PRNGKey
 
 IX_RADIUS = 10
-PROXIMITY_SCALES = (2.0, 5.0, 10.0, 20.0, 40.0)  # m, of the weighted cost's proximity residuals
+PROXIMITY_SCALES = (2.0, 5.0, 10.0)  # m, of the weighted cost's proximity residuals
+COST_RESIDUAL_NAMES = (
+    "cross_track",
+    "heading",
+    "surge_error",
+    "progress_error",
+    "sway",
+    "yaw_rate",
+    *(f"proximity_{ell:g}m" for ell in PROXIMITY_SCALES),
+)
 DX = 11
 OBSERVATIONS = ("full", "radar", "ranges")
 STATE_NAMES = (*hull_sim.STATE_NAMES, "pole_radius")
@@ -280,10 +289,12 @@ class UsvEnv:
 
     def cost_residuals(self, x: Array) -> Array:
         """Residuals a sailor wants at zero, for the learned cost's weighted form (the cost is
-        a learned non-negative weighting of their squares; :mod:`diffgcl.costs.network`): [10].
+        a learned non-negative weighting of their squares; :mod:`diffgcl.costs.network`): [11]
+        (:data:`COST_RESIDUAL_NAMES`).
 
         cross-track error (m); 2 sin(ψ/2) (heading error; its square is 2(1 − cos ψ)); surge
-        speed minus cruise, sway speed (m/s), yaw rate (rad/s); and proximity to the pole on
+        speed minus cruise and progress along the course (speed made good) minus cruise, sway
+        speed (m/s), yaw rate (rad/s); and proximity to the pole on
         five length scales, exp(−clearance / 2ℓ) for ℓ = 2, 5, 10, 20, 40 m (squared:
         exp(−clearance/ℓ); a positive mix of them is any smooth, convex, decreasing profile of
         the clearance, so the weights learn how close the demonstrators pass). The clearance is
@@ -299,6 +310,7 @@ class UsvEnv:
                 h[hull_sim.IX_PY],
                 2.0 * jnp.sin(0.5 * h[hull_sim.IX_PSI]),
                 nu[0] - self.cruise_speed,
+                h[hull_sim.IX_VX] - self.cruise_speed,
                 nu[1],
                 nu[2],
             ]
