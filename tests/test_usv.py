@@ -197,23 +197,29 @@ def test_network_on_task_features_is_the_network_on_the_features():
 
 
 def test_cost_residuals_square_to_the_sailors_terms():
-    """The weighted cost's residuals: squared heading residual = 2(1 − cos ψ) (periodic), the
-    proximity residuals square to exp(−clearance/ℓ), and all are differentiable in the state."""
-    from diffgcl.envs.usv import COST_RESIDUAL_NAMES, PROXIMITY_SCALES
+    """The weighted cost's residuals: squared heading residual = 2(1 − cos ψ) (periodic), progress
+    is the speed made good along the course, the barriers are the softplus depth inside each
+    margin (zero-ish well outside), and all are differentiable in the state."""
+    from diffgcl.envs.usv import COST_RESIDUAL_NAMES, PROXIMITY_MARGINS, PROXIMITY_SOFTNESS
 
     usv = make_usv_env(horizon=20)
     X = jnp.concatenate([random_states(jax.random.PRNGKey(3), 16), jnp.full((16, 1), 0.6)], 1)
     X = X.astype(usv.x0.dtype)
     R = jax.vmap(usv.cost_residuals)(X)
-    assert R.shape == (16, 6 + len(PROXIMITY_SCALES)) == (16, len(COST_RESIDUAL_NAMES))
+    assert R.shape == (16, 6 + len(PROXIMITY_MARGINS)) == (16, len(COST_RESIDUAL_NAMES))
     psi = np.asarray(X[:, hull_sim.IX_PSI])
     np.testing.assert_allclose(np.asarray(R[:, 1]) ** 2, 2 * (1 - np.cos(psi)), rtol=1e-5)
     np.testing.assert_allclose(np.asarray(R[:, 0]), np.asarray(X[:, hull_sim.IX_PY]))
-    clearance = np.maximum(np.asarray(jax.vmap(usv.clearance)(X)), -2.0)
-    for k, ell in enumerate(PROXIMITY_SCALES):
-        np.testing.assert_allclose(
-            np.asarray(R[:, 6 + k]) ** 2, np.exp(-clearance / ell), rtol=1e-5
-        )
+    np.testing.assert_allclose(
+        np.asarray(R[:, 3]), np.asarray(X[:, hull_sim.IX_VX]) - usv.cruise_speed, rtol=1e-6
+    )
+    clearance = np.asarray(jax.vmap(usv.clearance)(X), dtype=np.float64)
+    s = PROXIMITY_SOFTNESS
+    for k, d in enumerate(PROXIMITY_MARGINS):
+        expected = s * np.logaddexp(0.0, (d - clearance) / s)
+        np.testing.assert_allclose(np.asarray(R[:, 6 + k]), expected, rtol=1e-4, atol=1e-6)
+    far = X[0].at[hull_sim.SL_OBS].set(X[0, :2] + jnp.array([200.0, 0.0]))
+    assert float(jnp.max(usv.cost_residuals(far)[6:])) < 1e-10 + 2.0 * np.exp(-80.0)
     x_wrapped = X[0].at[hull_sim.IX_PSI].add(2 * np.pi)
     np.testing.assert_allclose(
         np.asarray(usv.cost_residuals(x_wrapped)) ** 2,
@@ -222,7 +228,40 @@ def test_cost_residuals_square_to_the_sailors_terms():
         atol=1e-6,
     )
     J = jax.jacfwd(usv.cost_residuals)(X[0])
-    assert J.shape == (11, usv.dX) and np.isfinite(np.asarray(J)).all()
-    np.testing.assert_allclose(
-        np.asarray(R[:, 3]), np.asarray(X[:, hull_sim.IX_VX]) - usv.cruise_speed, rtol=1e-6
-    )
+    assert J.shape == (10, usv.dX) and np.isfinite(np.asarray(J)).all()
+
+
+def test_action_limit_residuals_are_the_expert_costs_limit_barrier():
+    """‖r_lim(ũ)‖² equals the hand-written cost's limit penalty (weight × Σ (s softplus(z/s))²
+    over the four limits), is ~0 inside the actuator range, and joins a learned cost's residual
+    (the network's cost and Gauss–Newton residual both carry it)."""
+    from diffgcl.algorithms.presets import usv as usv_preset
+    from diffgcl.algorithms.rgcl import make_network
+
+    usv = make_usv_env(horizon=20)
+    p = usv.params
+    U = jnp.array([[0.0, 0.0], [0.1, -0.5], [0.9, 1.3], [-1.2, -2.0], [3.0, 0.2]], usv.x0.dtype)
+
+    def barrier(u):
+        cmd = usv.command(u)
+        sp = lambda z: (0.02 * jax.nn.softplus(z / 0.02)) ** 2  # noqa: E731
+        return usv.weights.limits * (
+            sp((cmd[0] - p.max_thrust) / p.max_thrust)
+            + sp((-p.reverse_fraction * p.max_thrust - cmd[0]) / p.max_thrust)
+            + sp((cmd[1] - p.max_nozzle) / p.max_nozzle)
+            + sp((-p.max_nozzle - cmd[1]) / p.max_nozzle)
+        )
+
+    for u in U:
+        r = usv.action_limit_residuals(u)
+        np.testing.assert_allclose(float(r @ r), float(barrier(u)), rtol=1e-4, atol=1e-9)
+    assert float(jnp.sum(usv.action_limit_residuals(U[1]) ** 2)) < 1e-6  # inside the range
+    assert float(jnp.sum(usv.action_limit_residuals(U[2]) ** 2)) > 1.0  # nozzle hard beyond
+    net = make_network(usv_preset(), usv)
+    params = net.init(jax.random.PRNGKey(0))
+    x = usv.initial_states()[0]
+    w_u = float(net.action_weight(params))
+    expected = float(net.state_cost(params, x)) + w_u * float(U[2] @ U[2]) + float(barrier(U[2]))
+    np.testing.assert_allclose(float(net.cost(params, x, U[2])), expected, rtol=1e-4)
+    r = net.residual(params, x, U[2])
+    np.testing.assert_allclose(float(r @ r), expected, rtol=1e-4)

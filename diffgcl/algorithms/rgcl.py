@@ -292,7 +292,8 @@ class RGCL(NamedTuple):
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
     """The cost network of ``config`` for ``env`` (parameters in the run's float dtype; with
     ``network.features == "env"`` it reads ``env.cost_features``, or ``env.cost_residuals`` for
-    the weighted form)."""
+    the weighted form; an env with ``action_limit_residuals`` gets its actuator-limit barrier as
+    a fixed part of the cost)."""
     dtype = jnp.asarray(env.initial_states()).dtype
     features = None
     if config.network.features == "env":
@@ -303,7 +304,15 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
                 f"(form {config.network.form!r})"
             )
         features = getattr(env, name)
-    return CostNetwork(config.network, env.dX, env.dU, param_dtype=dtype, feature_map=features)
+    limits = getattr(env, "action_limit_residuals", None)
+    return CostNetwork(
+        config.network,
+        env.dX,
+        env.dU,
+        param_dtype=dtype,
+        feature_map=features,
+        action_limits=limits,
+    )
 
 
 def _make_optimiser(config: GCLConfig, learning_rate: Array) -> optax.GradientTransformation:

@@ -267,7 +267,8 @@ def _state_and_action_costs(
     """State costs ``s: [T+1]`` and the trajectory cost (scalar) of one trajectory."""
     T = U.shape[0]
     s = jax.vmap(network.state_cost, in_axes=(None, 0, 0))(params, X, jnp.arange(T + 1))
-    return s, s.sum() + network.action_weight(params) * jnp.sum(U**2)
+    action = jax.vmap(network.action_cost, in_axes=(None, 0))(params, U)
+    return s, s.sum() + action.sum()
 
 
 def _masked_mean(v: Array, mask: Array) -> Array:

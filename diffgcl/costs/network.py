@@ -240,13 +240,20 @@ class CostNetwork:
     """The cost ``c_φ`` for states of size ``dX`` and actions of size ``dU``; all methods are pure
     functions of an explicit :class:`CostParams` and written for one ``(x, u, t)``.
     ``param_dtype``: dtype of new parameters (float64 in the tests); ``feature_map``: an optional
-    feature map ``φ(x: [dX]) -> [dF]`` the network reads instead of ``x`` (module docstring)."""
+    feature map ``φ(x: [dX]) -> [dF]`` the network reads instead of ``x`` (module docstring);
+    ``action_limits``: optional fixed residuals of the action ``r_lim(u): [K]`` (the env's
+    actuator limits, e.g. :meth:`diffgcl.envs.usv.UsvEnv.action_limit_residuals`), known and not
+    learned: the cost gains ``‖r_lim(u)‖²``. Where the env clips its commands, the linearised
+    dynamics lose all authority beyond the limits, and without this term the LQR pushes the
+    actions there for nothing (on the USV the controllers blew up within five iterations and
+    the boat circled with its nozzle hard over)."""
 
     config: CostNetworkConfig
     dX: int
     dU: int
     param_dtype: object = jnp.float32
     feature_map: Callable[[Array], Array] | None = None
+    action_limits: Callable[[Array], Array] | None = None
 
     @property
     def state_input_dim(self) -> int:
@@ -424,19 +431,29 @@ class CostNetwork:
         return self.temperature(params) * (r @ r)
 
     def residual(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
-        """Residual ``r: [F + dU]`` with ``c = ‖r‖²``: ``e^{ρ/2} [A y(x, t) + b; sqrt(w_u) u]``.
+        """Residual ``r`` with ``c = ‖r‖²``: ``e^{ρ/2} [A y(x, t) + b; sqrt(w_u) u; r_lim(u)]``.
 
         For Gauss–Newton expansion: ``l_xx ≈ 2 J_xᵀJ_x``, ``l_uu = 2 e^ρ w_u I``,
         ``l_ux ≈ 2 J_uᵀJ_x``.
         """
-        r = jnp.concatenate(
-            [self.state_residual(params, x, t), jnp.sqrt(self.action_weight(params)) * u]
-        )
+        r = jnp.concatenate([self.state_residual(params, x, t), self.action_residual(params, u)])
         return jnp.sqrt(self.temperature(params)) * r
 
+    def action_residual(self, params: CostParams, u: Array) -> Array:
+        """``[sqrt(w_u) u; r_lim(u)]`` (the second part only with ``action_limits``), untempered."""
+        r = jnp.sqrt(self.action_weight(params)) * u
+        if self.action_limits is None:
+            return r
+        return jnp.concatenate([r, self.action_limits(u)])
+
+    def action_cost(self, params: CostParams, u: Array) -> Array:
+        """``w_u ‖u‖² + ‖r_lim(u)‖²`` at ρ = 0: scalar."""
+        r = self.action_residual(params, u)
+        return r @ r
+
     def cost(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
-        """``c_φ(x, u, t) = s(x, t) + e^ρ w_u ‖u‖²``: scalar."""
-        action = self.temperature(params) * self.action_weight(params) * (u @ u)
+        """``c_φ(x, u, t) = s(x, t) + e^ρ (w_u ‖u‖² + ‖r_lim(u)‖²)``: scalar."""
+        action = self.temperature(params) * self.action_cost(params, u)
         return self.state_cost(params, x, t) + action
 
     def bind(self, params: CostParams) -> CostFn:

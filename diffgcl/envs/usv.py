@@ -65,7 +65,8 @@ from diffgcl.sim.sensors import (
 from diffgcl.types import Array, PRNGKey
 
 IX_RADIUS = 10
-PROXIMITY_SCALES = (2.0, 5.0, 10.0)  # m, of the weighted cost's proximity residuals
+PROXIMITY_MARGINS = (5.0, 10.0, 20.0, 30.0)  # m of clearance, the weighted cost's barriers
+PROXIMITY_SOFTNESS = 2.0  # m
 COST_RESIDUAL_NAMES = (
     "cross_track",
     "heading",
@@ -73,7 +74,7 @@ COST_RESIDUAL_NAMES = (
     "progress_error",
     "sway",
     "yaw_rate",
-    *(f"proximity_{ell:g}m" for ell in PROXIMITY_SCALES),
+    *(f"inside_{d:g}m" for d in PROXIMITY_MARGINS),
 )
 DX = 11
 OBSERVATIONS = ("full", "radar", "ranges")
@@ -289,22 +290,24 @@ class UsvEnv:
 
     def cost_residuals(self, x: Array) -> Array:
         """Residuals a sailor wants at zero, for the learned cost's weighted form (the cost is
-        a learned non-negative weighting of their squares; :mod:`diffgcl.costs.network`): [11]
+        a learned non-negative weighting of their squares; :mod:`diffgcl.costs.network`): [10]
         (:data:`COST_RESIDUAL_NAMES`).
 
         cross-track error (m); 2 sin(ψ/2) (heading error; its square is 2(1 − cos ψ)); surge
         speed minus cruise and progress along the course (speed made good) minus cruise, sway
-        speed (m/s), yaw rate (rad/s); and proximity to the pole on
-        five length scales, exp(−clearance / 2ℓ) for ℓ = 2, 5, 10, 20, 40 m (squared:
-        exp(−clearance/ℓ); a positive mix of them is any smooth, convex, decreasing profile of
-        the clearance, so the weights learn how close the demonstrators pass). The clearance is
-        floored at −2 m, so a deep collision does not overflow.
+        speed (m/s), yaw rate (rad/s); and how far the hull is inside each of four clearance
+        margins d = 5, 10, 20, 30 m, ``s · softplus((d − clearance)/s)`` with s = 2 m. A
+        positive mix of their squares is a convex barrier that rises as the clearance falls
+        below the margins the weights pick, and is zero well outside the largest: passing at a
+        distance costs nothing, so keeping away from the pole for the whole window (circling in
+        front of it) does not pay. Proximity terms with long tails (exp(−clearance/ℓ), ℓ up to
+        40 m) made exactly that pay: the controllers circled.
         """
         h = x[:IX_RADIUS]
         nu = hull_sim.body_velocity(h)
-        clearance = jnp.maximum(self.clearance(x), -2.0)
-        scales = jnp.asarray(PROXIMITY_SCALES, x.dtype)
-        proximity = jnp.exp(-clearance / (2.0 * scales))
+        s = PROXIMITY_SOFTNESS
+        margins = jnp.asarray(PROXIMITY_MARGINS, x.dtype)
+        inside = s * jax.nn.softplus((margins - self.clearance(x)) / s)
         course = jnp.stack(
             [
                 h[hull_sim.IX_PY],
@@ -315,7 +318,23 @@ class UsvEnv:
                 nu[2],
             ]
         )
-        return jnp.concatenate([course, proximity])
+        return jnp.concatenate([course, inside])
+
+    def action_limit_residuals(self, u: Array) -> Array:
+        """Residuals [4] of the normalised action beyond the actuators' limits (thrust above its
+        maximum or below full reverse, nozzle beyond ±its maximum), in fractions of the limit:
+        the hand-written cost's limit barrier (weight ``weights.limits``, softness 2 %) as
+        residuals, so that a learned cost keeps the commands where the clipped actuators still
+        respond (:class:`~diffgcl.costs.network.CostNetwork`'s ``action_limits``)."""
+        p = self.params
+        u_phys = self.command(u)
+        top = jnp.stack([p.max_thrust, p.max_nozzle]).astype(u.dtype)
+        bottom = jnp.stack([-p.reverse_fraction * p.max_thrust, -p.max_nozzle]).astype(u.dtype)
+        span = jnp.stack([p.max_thrust, p.max_nozzle]).astype(u.dtype)
+        s = 0.02
+        over = s * jax.nn.softplus(((u_phys - top) / span) / s)
+        under = s * jax.nn.softplus(((bottom - u_phys) / span) / s)
+        return jnp.sqrt(self.weights.limits) * jnp.concatenate([over, under])
 
     def start_state(self, pole_xy, radius, speed, heading: float = 0.0, cross_track: float = 0.0):
         """x0: [11] at (0, cross_track) heading ``heading`` at ``speed`` m/s (thrust lagged at the
