@@ -223,7 +223,7 @@ def test_linear_skip_features_and_weight_decay_mask():
 
 
 def test_weighted_form_is_a_positive_weighting_of_squared_residuals():
-    """form='weighted': s(x) = Σ_k e^θ_k (x_k / rms_k)², rms from the data's moments; the
+    """form='weighted': s(x) = Σ_k e^(θ_k − mean θ) (x_k / rms_k)², rms from the data's moments; the
     Gauss–Newton expansion is exact for it (the residual is linear in x here) and GCL's
     optimiser decays none of its parameters."""
     from diffgcl.costs.gcl import GCLConfig, make_cost_learner
@@ -235,7 +235,8 @@ def test_weighted_form_is_a_positive_weighting_of_squared_residuals():
     params = params.replace(net={**params.net, "log_w": jnp.array([0.3, -1.0, 2.0])})
     rms = np.sqrt(np.mean(np.asarray(data) ** 2, axis=0))
     x, u = jnp.array([0.7, -2.0, 0.1]), jnp.array([0.5, -0.25])
-    w = np.exp([0.3, -1.0, 2.0])
+    theta = np.array([0.3, -1.0, 2.0])
+    w = np.exp(theta - theta.mean())  # only the ratios are learned
     expected = np.sum(w * (np.asarray(x) / rms) ** 2) + 0.2 * float(u @ u)
     np.testing.assert_allclose(float(net.cost(params, x, u)), expected, rtol=1e-12)
     np.testing.assert_allclose(net.feature_weights(params), w / rms**2, rtol=1e-12)

@@ -159,25 +159,31 @@ def default(schedule: str = "v2") -> RGCLConfig:
 def usv() -> RGCLConfig:
     """The USV task (:mod:`diffgcl.algorithms.usv`): rGCL v2 on the hull with normalised actions,
     a cost of learned non-negative weights on a sailor's squared residuals (cross-track and
-    heading error, speed errors, sway, yaw rate, proximity to the pole on 2, 5 and 10 m;
-    ``network.form="weighted"``, :meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`) and a global
-    MDGPS policy on the boat's observations (noisy sensors in its training samples).
+    heading error, surge and progress speed errors, sway, yaw rate, depth inside clearance margins
+    of 5, 10, 20 and 30 m; ``network.form="weighted"``, :meth:`diffgcl.envs.usv.UsvEnv.
+    cost_residuals`) plus the actuators' limit barrier, and a global MDGPS policy on the boat's
+    observations (noisy sensors in its training samples).
 
-    The weighted form, not the Gram form on task features (``cost_features``): the Gram form's
-    quadratic learned no valley along the course after the pole, and its policy circled (0 %
-    back on course, 3.5× the demos' clearance; docs/usv.md). With proximity scales of 20 and
-    40 m as well, the learned weights grew a halo around the pole and the controllers circled
-    in front of it.
+    Differences from :func:`default` and why (docs/usv.md has the runs):
 
-    Differences from :func:`default` and why: ``init_var`` 0.01 and ``kl_step`` 1.0 (actions are
-    normalised to the actuators' ranges; DESIGN §7b measured GPS on the hull succeeding with these);
-    no goal regulariser (a window ends mid-return, not where the demonstrator wants to stay) and
-    no monotonic regulariser (the cost of passing a pole rises along a demo by nature); the
-    policy's observation normaliser floored at 1 (and at 10 % of each dimension's RMS): MDGPS
-    fits it on its first samples, which go straight ahead, so cross-track, heading, sway and yaw
-    rate have almost no spread there, and with GPS's floor of 1e-3 the policy's actions exploded
-    once the boat swerved (8 conditions, hand-written cost, 15 iterations: policy success 0 %
-    with floors 1e-3 / 10 %, 100 % with 1.0 / 10 %; docs/usv.md)."""
+    * the weighted form, not the Gram form on task features (``cost_features``): the Gram form's
+      quadratic learned no valley along the course after the pole, and its policy circled (0 %
+      back on course, 3.5× the demos' clearance);
+    * ``std_floor`` 1: the residuals are scaled by their RMS on the demos, floored at 1 (m, rad,
+      m/s); unfloored, a margin the demos never enter (5 m) got a weight of ~10⁴ per m², and the
+      controllers blew up within five iterations;
+    * ``kl_step`` 0.3 and ``max_step_mult`` 2 (ε ≤ 180 nats per iteration over T = 300): with
+      1.0 and 10 the learned cost's controllers blew up at iterations 3–5 (true cost 10⁵–10⁷)
+      and the boat circled with its nozzle hard over; the hand-written cost's reference keeps
+      1.0 and 10 (:class:`~diffgcl.algorithms.usv.UsvRunConfig`);
+    * ``init_var`` 0.01 (actions are normalised to the actuators' ranges);
+    * no goal regulariser (a window ends mid-return, not where the demonstrator wants to stay)
+      and no monotonic regulariser (the cost of passing a pole rises along a demo by nature);
+    * the policy's observation normaliser floored at 1 (and at 10 % of each dimension's RMS):
+      MDGPS fits it on its first samples, which go straight ahead, so cross-track, heading, sway
+      and yaw rate have almost no spread there, and with GPS's floor of 1e-3 the policy's
+      actions exploded once the boat swerved (8 conditions, hand-written cost, 15 iterations:
+      policy success 0 % with floors 1e-3 / 10 %, 100 % with 1.0 / 10 %)."""
     from diffgcl.algorithms.mdgps import PolicySettings
     from diffgcl.policies.mdgps import SStepConfig
     from diffgcl.policies.network import PolicyConfig
@@ -185,9 +191,17 @@ def usv() -> RGCLConfig:
     return RGCLConfig(
         schedule="v2",
         iterations=30,
-        gps=GPSConfig(num_samples=5, kl_step=1.0, init_var=0.01, gauss_newton=True, maxent=False),
+        gps=GPSConfig(
+            num_samples=5,
+            kl_step=0.3,
+            max_step_mult=2.0,
+            init_var=0.01,
+            gauss_newton=True,
+            maxent=False,
+        ),
         network=CostNetworkConfig(
             form="weighted",
+            std_floor=1.0,
             action_weight=0.3,
             learn_action_weight=False,
             features="env",

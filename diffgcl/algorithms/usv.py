@@ -374,7 +374,9 @@ class UsvRunConfig:
 
     task: :class:`UsvTaskConfig`; rgcl: the rGCL + MDGPS settings (None: :func:`~diffgcl.
     algorithms.presets.usv`); methods: of :data:`METHODS` — ``rgcl`` (learned cost + MDGPS),
-    ``expert`` (MDGPS with the hand-written cost, ``expert_iterations`` iterations), ``bc``
+    ``expert`` (MDGPS with the hand-written cost, ``expert_iterations`` iterations at its own
+    KL step ``expert_kl_step`` and ``expert_max_step_mult``, with which it was measured; a fixed
+    cost takes larger steps than a learned one that moves every iteration), ``bc``
     (behaviour cloning on the recorded observations); seeds: training seeds (vmapped);
     heldout: number of held-out situations (drawn with ``heldout_seed``), each rolled out for
     the window's horizon plus ``eval_extra`` steps (to judge the return); identify: fit the
@@ -389,6 +391,8 @@ class UsvRunConfig:
     heldout_seed: int = 1000
     eval_extra: int = 150
     expert_iterations: int = 15
+    expert_kl_step: float = 1.0
+    expert_max_step_mult: float = 10.0
     identify: bool = True
     sysid: object = None
 
@@ -435,12 +439,12 @@ def _batched(fn, seeds, *args):
 def learned_cost_weights(network, params) -> dict:
     """The weighted-form cost per residual (:data:`diffgcl.envs.usv.COST_RESIDUAL_NAMES`), per
     training seed (``params`` with a leading seed axis): ``per_unit`` — its weight per squared
-    unit of the residual, at the cost's temperature; ``log_w`` — the learned θ (0 at the start,
-    where every residual weighs 1 per squared RMS of the data)."""
+    unit of the residual, at the cost's temperature; ``log_w`` — the learned θ̃ (0 at the start,
+    where every residual weighs 1 per squared RMS of the demos; their mean stays 0)."""
     from diffgcl.envs.usv import COST_RESIDUAL_NAMES
 
     w = np.asarray(jax.vmap(lambda p: network.feature_weights(p) * network.temperature(p))(params))
-    theta = np.asarray(params.net["log_w"])
+    theta = np.asarray(jax.vmap(network.log_weights)(params))
     return {
         name: {"per_unit": w[:, k].tolist(), "log_w": theta[:, k].tolist()}
         for k, name in enumerate(COST_RESIDUAL_NAMES)
@@ -573,7 +577,12 @@ def run_usv(
 
         _say(verbose, "MDGPS with the hand-written cost (reference)")
         gps = dataclasses.replace(
-            rgcl_config.gps, iterations=config.expert_iterations, maxent=False, gauss_newton=False
+            rgcl_config.gps,
+            iterations=config.expert_iterations,
+            kl_step=config.expert_kl_step,
+            max_step_mult=config.expert_max_step_mult,
+            maxent=False,
+            gauss_newton=False,
         )
         md = make_mdgps(MDGPSConfig(gps=gps, policy=rgcl_config.policy), env, env.expert_cost)
         (state, _), seconds = _batched(md.train, config.seeds)

@@ -34,11 +34,12 @@ quadratic in the raw state cannot say "keep away from the pole"; a quadratic in 
 can.
 
 Weighted form (``CostNetworkConfig.form = "weighted"``): instead of the Gram form, the state cost
-is a non-negative weighted sum of squared residuals ``s(x) = e^ρ Σ_k e^{θ_k} (ρ_k(x) / rms_k)²``,
+is a non-negative weighted sum of squared residuals ``s(x) = e^ρ Σ_k e^{θ̃_k} (ρ_k(x) / rms_k)²``,
 where each residual ``ρ_k`` is zero where a domain expert is content (for the USV: cross-track and
 heading error, speed error, soft proximity to the pole; :meth:`diffgcl.envs.usv.UsvEnv.
 cost_residuals`), ``rms_k`` is its root mean square on the data (from the normaliser: ``var +
-mean²``) and the log weights ``θ: [K]`` are what GCL learns. This is maximum-entropy IRL's linear
+mean²``) and the log weights ``θ̃ = θ − mean(θ): [K]`` are what GCL learns (their ratios only:
+the overall scale is the temperature's). This is maximum-entropy IRL's linear
 cost in features, so matching the demos' feature expectations is what the likelihood asks; and
 with every weight positive the cost keeps its valley where every residual is zero (e.g. back on
 the course line once the pole is passed) whatever the weights learn.
@@ -398,15 +399,25 @@ class CostNetwork:
         norm = jax.lax.stop_gradient(params.norm)
         return jnp.maximum(jnp.sqrt(norm.var + norm.mean**2), self.config.std_floor)
 
+    def log_weights(self, params: CostParams) -> Array:
+        """The weighted form's ``θ − mean(θ)``: [K]. Only the weights' ratios are learned; their
+        geometric mean stays 1, so that each residual weighs about 1 per step on the demos on
+        average and the cost's overall scale is the temperature's (``e^ρ``). Left free, the GCL
+        update shrank every weight alike (the demos look costlier than the controllers' samples
+        in every residual), the fixed action and limit terms took over, and the controllers
+        blew up late in the run."""
+        theta = params.net["log_w"]
+        return theta - jnp.mean(theta)
+
     def feature_weights(self, params: CostParams) -> Array:
-        """The weighted form's per-residual weights ``e^θ / rms²``: [K] (cost per squared unit
-        of each residual, at ρ = 0)."""
-        return jnp.exp(params.net["log_w"]) / self.residual_scale(params) ** 2
+        """The weighted form's per-residual weights ``e^θ̃ / rms²`` (θ̃ = :meth:`log_weights`):
+        [K] (cost per squared unit of each residual, at ρ = 0)."""
+        return jnp.exp(self.log_weights(params)) / self.residual_scale(params) ** 2
 
     def weighted_residual(self, params: CostParams, x: Array) -> Array:
-        """``e^{θ/2} ⊙ ρ(x) / rms``: [K] (weighted form)."""
+        """``e^{θ̃/2} ⊙ ρ(x) / rms``: [K] (weighted form)."""
         rho = self.state_input(x)
-        return jnp.exp(0.5 * params.net["log_w"]) * rho / self.residual_scale(params)
+        return jnp.exp(0.5 * self.log_weights(params)) * rho / self.residual_scale(params)
 
     def affine_state_quadratic(self, params: CostParams) -> tuple[Array, Array, Array]:
         """``(G: [dIn, dIn], g: [dIn], c: [])`` with ``‖M z + m‖² = zᵀGz + 2gᵀz + c`` (``G = MᵀM``,
