@@ -69,6 +69,19 @@ def _softplus_sq(z: Array, scale: Array) -> Array:
     return (scale * jax.nn.softplus(z / scale)) ** 2
 
 
+def actuator_limit_residuals(params: HullParams, u: Array, softness: float = 0.02) -> Array:
+    """[4] how far the physical command ``u = [thrust (N), nozzle (rad)]`` lies beyond the
+    actuators' limits (thrust above its maximum, below full reverse; nozzle beyond ±its maximum),
+    in fractions of the limit and softened: ``s · softplus(z / s)``. Their squares are the
+    hand-written cost's limit penalty; a learned cost carries them as fixed residuals."""
+    p = params
+    top = jnp.stack([p.max_thrust, p.max_nozzle]).astype(u.dtype)
+    bottom = jnp.stack([-p.reverse_fraction * p.max_thrust, -p.max_nozzle]).astype(u.dtype)
+    span = jnp.stack([p.max_thrust, p.max_nozzle]).astype(u.dtype)
+    z = jnp.concatenate([(u - top) / span, (bottom - u) / span])
+    return softness * jax.nn.softplus(z / softness)
+
+
 def hull_points(params: HullParams, x: Array) -> Array:
     """[3, 2] world positions of the bow, centre and stern circle centres of the hull outline
     (a stadium of width ``beam`` and length ``length``) for a hull state ``x``."""
@@ -119,14 +132,8 @@ def avoidance_cost(
     nozzle = u[hull_sim.IU_NOZZLE]
     effort = w.thrust * ((thrust - cruise_thrust) / p.max_thrust) ** 2
     effort += w.nozzle * (nozzle / p.max_nozzle) ** 2
-    t_lo = -p.reverse_fraction * p.max_thrust
-    over = (
-        _softplus_sq((thrust - p.max_thrust) / p.max_thrust, 0.02)
-        + _softplus_sq((t_lo - thrust) / p.max_thrust, 0.02)
-        + _softplus_sq((nozzle - p.max_nozzle) / p.max_nozzle, 0.02)
-        + _softplus_sq((-p.max_nozzle - nozzle) / p.max_nozzle, 0.02)
-    )
-    effort = jnp.where(terminal, 0.0, effort + w.limits * over)
+    over = actuator_limit_residuals(p, u)
+    effort = jnp.where(terminal, 0.0, effort + w.limits * (over @ over))
     return clearance + end_weight * (course + heading + speed) + effort
 
 

@@ -48,6 +48,7 @@ import numpy as np
 from diffgcl.checks import check_shape
 from diffgcl.envs.hull import (
     HullCostWeights,
+    actuator_limit_residuals,
     avoidance_cost,
     cruise_thrust,
     on_course,
@@ -326,15 +327,8 @@ class UsvEnv:
         the hand-written cost's limit barrier (weight ``weights.limits``, softness 2 %) as
         residuals, so that a learned cost keeps the commands where the clipped actuators still
         respond (:class:`~diffgcl.costs.network.CostNetwork`'s ``action_limits``)."""
-        p = self.params
-        u_phys = self.command(u)
-        top = jnp.stack([p.max_thrust, p.max_nozzle]).astype(u.dtype)
-        bottom = jnp.stack([-p.reverse_fraction * p.max_thrust, -p.max_nozzle]).astype(u.dtype)
-        span = jnp.stack([p.max_thrust, p.max_nozzle]).astype(u.dtype)
-        s = 0.02
-        over = s * jax.nn.softplus(((u_phys - top) / span) / s)
-        under = s * jax.nn.softplus(((bottom - u_phys) / span) / s)
-        return jnp.sqrt(self.weights.limits) * jnp.concatenate([over, under])
+        over = actuator_limit_residuals(self.params, self.command(u))
+        return jnp.sqrt(self.weights.limits) * over
 
     def start_state(self, pole_xy, radius, speed, heading: float = 0.0, cross_track: float = 0.0):
         """x0: [11] at (0, cross_track) heading ``heading`` at ``speed`` m/s (thrust lagged at the
