@@ -82,6 +82,35 @@ def test_observation_layouts_and_features():
         make_usv_env(np.zeros((1, 11)))
 
 
+def test_range_encodings():
+    """Metres as read; saturated: metres near the boat, far things alike, the same encoding in
+    the env's observation."""
+    from diffgcl.envs.usv import SATURATION_RANGE, encode_ranges
+
+    r = jnp.linspace(0.0, 300.0, 301)
+    np.testing.assert_array_equal(np.asarray(encode_ranges(r, "metres")), np.asarray(r))
+    s = np.asarray(encode_ranges(r, "saturated"))
+    assert np.all(np.diff(s) > 0) and np.all(s < SATURATION_RANGE)  # order kept, bounded
+    slope = jax.grad(lambda v: encode_ranges(v, "saturated"))
+    assert float(slope(jnp.asarray(0.0))) == pytest.approx(1.0)
+    assert float(slope(jnp.asarray(10.0))) > 0.99  # metres within a swerve's reach
+    assert s[100] == pytest.approx(SATURATION_RANGE * np.tanh(1.0))
+    # A pole 230 m astern against no return (300 m): 1.5 % apart, not 23 % as in metres.
+    assert (s[300] - s[230]) / s[300] < 0.02
+    with pytest.raises(ValueError, match="range encoding"):
+        encode_ranges(r, "inches")
+    with pytest.raises(ValueError, match="range encoding"):
+        make_usv_env(range_encoding="inches")
+    plain = make_usv_env(horizon=20)
+    sat = make_usv_env(horizon=20, range_encoding="saturated")
+    x = plain.initial_states()[0]
+    x = x.at[hull_sim.IX_PX].set(x[hull_sim.IX_OBS_X] - 40.0)
+    n = plain.layout.num_beams
+    o, o_sat = np.asarray(plain.obs(x)), np.asarray(sat.obs(x))
+    np.testing.assert_allclose(o_sat[:n], np.asarray(encode_ranges(o[:n], "saturated")))
+    np.testing.assert_array_equal(o_sat[n:], o[n:])
+
+
 def test_success_and_metrics_follow_the_clearance():
     usv = make_usv_env(horizon=10)
     x = usv.initial_states()[0]

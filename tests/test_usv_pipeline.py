@@ -11,7 +11,7 @@ import pytest
 
 from diffgcl.algorithms import usv as U
 from diffgcl.data.demos import DemoSet
-from diffgcl.envs.usv import IX_RADIUS, make_usv_env
+from diffgcl.envs.usv import IX_RADIUS, encode_ranges, make_usv_env
 from diffgcl.sim import hull as hull_sim
 
 
@@ -114,6 +114,15 @@ def test_bag_demos_in_the_task_layout(tiny_bags):
     n = env.layout.num_beams
     sim = np.asarray(jax.vmap(jax.vmap(env.obs))(jnp.asarray(task_demos.X)))
     np.testing.assert_allclose(task_demos.O[..., n:], sim[..., n:], atol=1e-6)
+    # The recorded ranges in the env's encoding: a beam that sees nothing in the recording and
+    # in the simulation reads the same in both.
+    assert env.range_encoding == "saturated"
+    np.testing.assert_allclose(
+        task_demos.O[..., :n], np.asarray(encode_ranges(windows.O[..., :n], "saturated"))
+    )
+    nothing = np.asarray(encode_ranges(env.layout.max_ranges, "saturated"))
+    free = (windows.O[..., :n] >= env.layout.max_ranges) & np.isclose(sim[..., :n], nothing)
+    assert free.mean() > 0.5 and not np.isclose(task_demos.O[..., :n], nothing).all()
     # The pooled demo controller: one fit shared by both conditions.
     batch = U.demo_batch_pooled(task_demos)
     assert batch.X.shape == (2, 1, task.horizon + 1, env.dX)

@@ -38,7 +38,7 @@ import numpy as np
 
 from diffgcl.algorithms.rgcl import DemoBatch
 from diffgcl.data.demos import DemoError, DemoSet
-from diffgcl.envs.usv import UsvEnv, make_usv_env
+from diffgcl.envs.usv import UsvEnv, encode_ranges, make_usv_env
 from diffgcl.sim import hull as hull_sim
 from diffgcl.types import Array, PRNGKey
 
@@ -52,6 +52,7 @@ class UsvTaskConfig:
     before / after: steps kept before and after the closest approach (T = before + after);
     sets: the bag sets whose episodes are used (set 1 of the seed has no LiDAR, set 2 has it);
     observation: the policy's observation set (:data:`diffgcl.envs.usv.OBSERVATIONS`);
+    range_encoding: how the policy reads the ranges (:func:`diffgcl.envs.usv.encode_ranges`);
     max_conditions: use at most this many demos (None: all); default_pole_radius: m.
     """
 
@@ -59,6 +60,7 @@ class UsvTaskConfig:
     after: int = 180
     sets: tuple[str, ...] = ("2",)
     observation: str = "full"
+    range_encoding: str = "saturated"
     max_conditions: int | None = None
     default_pole_radius: float = DEFAULT_POLE_RADIUS
 
@@ -188,6 +190,7 @@ def make_task_env(
         cruise_speed=speed,
         horizon=config.horizon if horizon is None else horizon,
         observation=config.observation,
+        range_encoding=config.range_encoding,
     )
 
 
@@ -196,7 +199,7 @@ def usv_observations(env: UsvEnv, X: np.ndarray, O_hull: np.ndarray) -> np.ndarr
     the *recorded* observations in the hull layout ``O_hull: [..., 53]`` (ranges, sin ψ, cos ψ,
     ν): the ranges are what the bag's sensors read, the rest comes from the state."""
     n_beams = env.layout.num_beams
-    ranges = O_hull[..., :n_beams]
+    ranges = np.asarray(encode_ranges(O_hull[..., :n_beams], env.range_encoding))
     psi = X[..., hull_sim.IX_PSI]
     heading = np.stack([np.sin(psi), np.cos(psi)], axis=-1)
     nu = O_hull[..., n_beams + 2 : n_beams + 5]
@@ -486,7 +489,11 @@ def run_usv(
     t_start = time.perf_counter()
     task = config.task
     rgcl_config = config.rgcl if config.rgcl is not None else usv_preset()
-    summary: dict = {"sets": list(task.sets), "observation": task.observation}
+    summary: dict = {
+        "sets": list(task.sets),
+        "observation": task.observation,
+        "range_encoding": task.range_encoding,
+    }
 
     windows = task_windows(demos, task)
     radii = pole_radii(windows, task.default_pole_radius, manifest)

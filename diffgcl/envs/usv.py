@@ -22,6 +22,9 @@ Observation (what the policy sees; the cost learns on the full state):
 * ``"radar"`` — the same without the LiDAR beams (the seed's set 1 had no LiDAR); dO = 22;
 * ``"ranges"`` — the ablation without course information: ranges and ν only; dO = 51.
 
+The ranges enter in metres or, with ``range_encoding="saturated"``, through :func:`encode_ranges`
+(metres near the boat, about the same for everything far away).
+
 Ranges are what ingestion makes of the boat's recorded sensors (:class:`~diffgcl.sim.sensors.
 PoleSensorModel`, :func:`~diffgcl.sim.sensors.pole_beams`), so that a policy trained on them
 reads demos' observations alike: the LiDAR beams read the pole's scan returns as discs (about
@@ -79,7 +82,22 @@ COST_RESIDUAL_NAMES = (
 )
 DX = 11
 OBSERVATIONS = ("full", "radar", "ranges")
+RANGE_ENCODINGS = ("metres", "saturated")
+SATURATION_RANGE = 100.0  # m, of the saturated range encoding
 STATE_NAMES = (*hull_sim.STATE_NAMES, "pole_radius")
+
+
+def encode_ranges(r: Array, encoding: str) -> Array:
+    """Beam ranges ``r`` (m) as the policy sees them: ``"metres"`` as read; ``"saturated"``
+    ``R tanh(r / R)`` with ``R`` = :data:`SATURATION_RANGE`: metres near the boat (slope 1 at
+    0, 0.42 at 100 m), and everything far away — a pole far astern, a beam with no return —
+    reads about ``R``. In metres a pole astern reads its growing distance, and a policy trained
+    on windows that end 170 m past the pole extrapolates from it once the boat sails on."""
+    if encoding == "metres":
+        return r
+    if encoding == "saturated":
+        return SATURATION_RANGE * jnp.tanh(r / SATURATION_RANGE)
+    raise ValueError(f"usv: range encoding {encoding!r}; choose one of {RANGE_ENCODINGS}")
 
 
 def pole_in_hull_frame(x: Array) -> Array:
@@ -121,6 +139,7 @@ class UsvEnv:
     action_offset: Array  # [2] physical command at ũ = 0
     action_scale: Array  # [2] physical command per unit of ũ
     observation: str = "full"
+    range_encoding: str = "metres"
     sensors: PoleSensorModel = PoleSensorModel()
     weights: HullCostWeights = HullCostWeights()
     horizon: int = 240
@@ -171,7 +190,7 @@ class UsvEnv:
     def obs(self, x: Array, key: PRNGKey | None = None) -> Array:
         """x: [11] -> o: [dO] (see the module docstring); ``key`` adds the sensors' noise."""
         check_shape("usv.obs", "x", x, (self.dX,))
-        r = self.ranges(x, key)
+        r = encode_ranges(self.ranges(x, key), self.range_encoding)
         psi = x[hull_sim.IX_PSI]
         nu = hull_sim.body_velocity(x[:IX_RADIUS])
         heading = jnp.stack([jnp.sin(psi), jnp.cos(psi)])
@@ -368,6 +387,7 @@ def make_usv_env(
     cruise_speed: float = 10.0,
     horizon: int = 240,
     observation: str = "full",
+    range_encoding: str = "metres",
     weights: HullCostWeights | None = None,
     action_scale=None,
     sensors: PoleSensorModel | None = None,
@@ -376,11 +396,14 @@ def make_usv_env(
     :func:`diffgcl.data.task_frame.usv_conditions`; default :func:`default_conditions`), hull
     ``params`` (default nominal; e.g. identified from bags), sensor ``layout``, ``cruise_speed``
     (m/s; the thrust that holds it is the action offset), horizon T, the policy's
-    ``observation`` set (``OBSERVATIONS``), the recorded ``sensors`` behind the observed beams
+    ``observation`` set (``OBSERVATIONS``) and how it reads ranges (``range_encoding``, of
+    ``RANGE_ENCODINGS``: :func:`encode_ranges`), the recorded ``sensors`` behind the observed beams
     (default: the synthetic Odin-like ones). ``action_scale`` defaults to [max thrust, max
     nozzle angle]."""
     if observation not in OBSERVATIONS:
         raise ValueError(f"usv: observation {observation!r}; choose one of {OBSERVATIONS}")
+    if range_encoding not in RANGE_ENCODINGS:
+        raise ValueError(f"usv: range encoding {range_encoding!r}; choose one of {RANGE_ENCODINGS}")
     dtype = jnp.zeros(()).dtype
     x0 = default_conditions(speed=cruise_speed) if x0 is None else x0
     x0 = np.atleast_2d(np.asarray(x0, dtype=float))
@@ -406,6 +429,7 @@ def make_usv_env(
         action_offset=jnp.asarray([thrust, 0.0], dtype),
         action_scale=jnp.asarray(scale, dtype),
         observation=observation,
+        range_encoding=range_encoding,
         sensors=sensors or PoleSensorModel(),
         weights=weights or HullCostWeights(),
         horizon=horizon,
