@@ -200,3 +200,16 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
     assert (out / "notes.txt").read_text() == "mine"
     assert (out / "usv_tracks.png").is_file() and (out / "usv_cost_map.png").is_file()
     assert isinstance(run.demos, DemoSet)
+
+
+def test_cli_usv_choices_are_the_envs():
+    """``diffgcl usv``'s --observation and --range-encoding offer what the env knows."""
+    from diffgcl.cli import build_parser
+    from diffgcl.envs.usv import OBSERVATIONS, RANGE_ENCODINGS
+
+    usv = build_parser()._subparsers._group_actions[0].choices["usv"]
+    choices = {a.dest: a.choices for a in usv._actions if a.choices}
+    assert set(choices["observation"]) == set(OBSERVATIONS)
+    assert set(choices["range_encoding"]) == set(RANGE_ENCODINGS)
+    args = build_parser().parse_args(["usv"])
+    assert args.range_encoding == U.UsvTaskConfig().range_encoding

@@ -3,7 +3,8 @@ printing; the pipeline is :func:`diffgcl.algorithms.usv.run_usv`, the pictures
 :func:`diffgcl.viz.usv.save_usv_plots`).
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
-                [--seeds 1] [--heldout 256] [--fast] [--set a.b=value] [--out runs/usv]
+                [--range-encoding saturated|metres] [--seeds 1] [--heldout 256] [--fast]
+                [--set a.b=value] [--out runs/usv]
 
 Without ``--bags`` it runs on the built-in synthetic Odin-like bags (written once into the
 cache) and judges the policies on the generator's true hull; with them, on the identified hull.
@@ -41,7 +42,11 @@ def usv_command(args) -> int:
         demos, folder = builtin_demos(fast=args.fast)
         manifest, truth = folder / "manifest.json", true_params()
     methods = tuple(m for m in args.methods.split(",") if m)
-    task = UsvTaskConfig(sets=tuple(args.sets.split(",")), observation=args.observation)
+    task = UsvTaskConfig(
+        sets=tuple(args.sets.split(",")),
+        observation=args.observation,
+        range_encoding=args.range_encoding,
+    )
     rgcl = with_overrides(usv_preset(), args.set)
     if args.fast:
         task = dataclasses.replace(task, before=100, after=140)
@@ -70,6 +75,12 @@ def register(subparsers) -> None:
     p.add_argument("--topics", type=Path, default=None, help="topic map YAML (docs/bags.md)")
     p.add_argument("--sets", default="2", help="bag sets to use, comma-separated (default 2)")
     p.add_argument("--observation", choices=("full", "radar", "ranges"), default="full")
+    p.add_argument(
+        "--range-encoding",
+        choices=("saturated", "metres"),  # diffgcl.envs.usv.RANGE_ENCODINGS
+        default="saturated",
+        help="how the policy reads its range beams (default saturated: metres near, alike far)",
+    )
     p.add_argument("--methods", default="rgcl,expert,bc", help="of rgcl, expert, bc")
     p.add_argument("--seeds", type=int, default=1)
     p.add_argument("--seed", type=int, default=0, help="first seed")
