@@ -102,6 +102,12 @@ def main(argv=None) -> int:
     parser.add_argument("--no-radar", action="store_true", help="skip the radar-only variant")
     parser.add_argument("--methods", default=None, help="of rgcl, expert, bc (default: all)")
     parser.add_argument("--conditions", type=int, default=None, help="use the first N demos")
+    parser.add_argument(
+        "--range-encoding",
+        choices=("saturated", "metres"),
+        default=None,
+        help="how the policies read their range beams (default: the task's, saturated)",
+    )
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None, help="plots (a new or own folder)")
@@ -131,6 +137,13 @@ def main(argv=None) -> int:
     if args.conditions is not None:
         main_cfg = dataclasses.replace(
             main_cfg, task=dataclasses.replace(main_cfg.task, max_conditions=args.conditions)
+        )
+    if args.range_encoding is not None:
+        main_cfg, radar_cfg = (
+            dataclasses.replace(
+                c, task=dataclasses.replace(c.task, range_encoding=args.range_encoding)
+            )
+            for c in (main_cfg, radar_cfg)
         )
     if args.set:
         rgcl = with_overrides(main_cfg.rgcl or usv_preset(), args.set)

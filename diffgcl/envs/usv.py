@@ -83,16 +83,17 @@ COST_RESIDUAL_NAMES = (
 DX = 11
 OBSERVATIONS = ("full", "radar", "ranges")
 RANGE_ENCODINGS = ("metres", "saturated")
-SATURATION_RANGE = 100.0  # m, of the saturated range encoding
+SATURATION_RANGE = 60.0  # m, of the saturated range encoding
 STATE_NAMES = (*hull_sim.STATE_NAMES, "pole_radius")
 
 
 def encode_ranges(r: Array, encoding: str) -> Array:
     """Beam ranges ``r`` (m) as the policy sees them: ``"metres"`` as read; ``"saturated"``
-    ``R tanh(r / R)`` with ``R`` = :data:`SATURATION_RANGE`: metres near the boat (slope 1 at
-    0, 0.42 at 100 m), and everything far away — a pole far astern, a beam with no return —
-    reads about ``R``. In metres a pole astern reads its growing distance, and a policy trained
-    on windows that end 170 m past the pole extrapolates from it once the boat sails on."""
+    ``R tanh(r / R)`` with ``R`` = :data:`SATURATION_RANGE` (the LiDAR's reach): metres near the
+    boat (slope 0.97 at 10 m, 0.42 at R), and everything well beyond R — a pole far astern, a
+    beam with no return — reads R. In metres a pole astern reads its growing distance, and a
+    policy trained on windows that end 170 m past the pole drifts off the line once the boat
+    sails on into readings it never had (docs/usv.md)."""
     if encoding == "metres":
         return r
     if encoding == "saturated":
