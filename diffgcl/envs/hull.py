@@ -75,10 +75,9 @@ def actuator_limit_residuals(params: HullParams, u: Array, softness: float = 0.0
     in fractions of the limit and softened: ``s · softplus(z / s)``. Their squares are the
     hand-written cost's limit penalty; a learned cost carries them as fixed residuals."""
     p = params
-    top = jnp.stack([p.max_thrust, p.max_nozzle]).astype(u.dtype)
+    top = jnp.stack([p.max_thrust, p.max_nozzle]).astype(u.dtype)  # the upper limits, the units
     bottom = jnp.stack([-p.reverse_fraction * p.max_thrust, -p.max_nozzle]).astype(u.dtype)
-    span = jnp.stack([p.max_thrust, p.max_nozzle]).astype(u.dtype)
-    z = jnp.concatenate([(u - top) / span, (bottom - u) / span])
+    z = jnp.concatenate([u - top, bottom - u]) / jnp.concatenate([top, top])
     return softness * jax.nn.softplus(z / softness)
 
 
