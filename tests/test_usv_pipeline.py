@@ -62,6 +62,13 @@ def test_scores_of_hand_built_tracks():
     assert same["clearance_ratio_vs_demos"] == pytest.approx(1.0)
     bad = U.score_rollouts(env, np.stack([hit, hit]), demos)
     assert bad["collision_rate"] == 1.0 and bad["clearance_ratio_vs_demos"] < 0
+    # Per training seed: seed 0 flew through the pole, seed 1 the demos' path.
+    seeds = U.per_seed_figures(
+        env, np.stack([np.stack([hit, hit]), demos]), same["demo_min_clearance_median_m"]
+    )
+    assert seeds["collision_rate"] == [1.0, 0.0]
+    assert seeds["return_to_course_rate"][1] == 1.0
+    assert seeds["clearance_ratio_vs_demos"][0] < 0 < seeds["clearance_ratio_vs_demos"][1] == 1.0
     # The path distance: a track 3 m to the side of a straight demo is 3 m from it.
     d = U.path_distance_to_demos(
         straight_track(env, 3.0, T)[None], straight_track(env, 0.0, T)[None]

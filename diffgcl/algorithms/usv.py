@@ -15,11 +15,13 @@ The pieces, each a function the experiment (``experiments/usv_avoidance.py``) an
    normalised actions, the policy's observations built from the *recorded* ranges);
 5. rGCL (:mod:`diffgcl.algorithms.rgcl`, :func:`diffgcl.algorithms.presets.usv`) learns the cost
    on task features and the MDGPS policy on the observations; references: MDGPS with the
-   hand-written cost (:func:`train_expert`) and behaviour cloning (:mod:`diffgcl.algorithms.bc`);
-6. :func:`heldout_starts` and :func:`evaluate_policy_batch` — situations none of the demos had
-   (pole distance, the boat's lateral offset and heading, pole radius and speed drawn from the
-   demos' ranges), rolled out on the *true* hull with sensor noise; per episode: collision, minimum
-   clearance, back on course, side passed, path distance to the nearest demo.
+   hand-written cost (:func:`diffgcl.algorithms.mdgps.make_mdgps` on ``env.expert_cost``) and
+   behaviour cloning (:mod:`diffgcl.algorithms.bc`);
+6. :func:`heldout_starts`, :func:`policy_tracks` and :func:`score_rollouts` — situations none of
+   the demos had (pole distance, the boat's lateral offset and heading, pole radius and speed
+   drawn from the demos' ranges), rolled out on the *true* hull with sensor noise; per episode:
+   collision, minimum clearance, back on course, side passed, path distance to the nearest demo;
+   :func:`per_seed_figures` splits the main ones by training seed.
 
 The demonstrators' own controller for GCL's fusion weights is fitted once on all windows pooled
 (one human policy, time-aligned by the closest approach), not per condition: with one demo per
@@ -353,6 +355,20 @@ def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
     }
 
 
+def per_seed_figures(env: UsvEnv, tracks, demo_clearance_m: float) -> dict:
+    """Collision rate, on course at the end and clearance ratio (over the demos' median minimum
+    clearance ``demo_clearance_m``) of each training seed's tracks ``[S, B, T+1, 11]``, each a
+    list over the seeds."""
+    figures = {"collision_rate": [], "return_to_course_rate": [], "clearance_ratio_vs_demos": []}
+    for X in np.asarray(tracks):
+        m = trajectory_metrics(env, X)
+        figures["collision_rate"].append(float(m["collision"].mean()))
+        figures["return_to_course_rate"].append(float(m["back_on_course"].mean()))
+        clearance = float(np.median(m["min_clearance"]))
+        figures["clearance_ratio_vs_demos"].append(clearance / demo_clearance_m)
+    return figures
+
+
 def policy_tracks(env: UsvEnv, policy, params, x0, keys: Array) -> np.ndarray:
     """Noise-free-action rollouts [S, B, T+1, 11] of global policies (``params`` with a leading
     seed axis S, one key each in ``keys: [S, 2]``) from ``x0: [B, 11]``, with the env's sensor
@@ -548,6 +564,7 @@ def run_usv(
         run.policies[name] = (policy, params)
         run.tracks[name] = tracks
         score = score_rollouts(env_true, tracks.reshape(-1, *tracks.shape[2:]), task_demos.X)
+        score["per_seed"] = per_seed_figures(env_true, tracks, score["demo_min_clearance_median_m"])
         summary[name] = {**summary.get(name, {}), **score}
         _say(
             verbose,
