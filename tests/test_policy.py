@@ -309,6 +309,27 @@ def test_rgcl_v2_with_a_policy_learns_from_demos(observed_demos):
     assert not bool(m.rolled_back.any())
     assert int(state.policy.step) == 8 * 300
     assert state.policy.params.var.shape == (env.dU,)
+    # Every iteration's policy is kept, the last one is the state's; its learned cost from the
+    # training starts is the cost network's on its own rollouts.
+    from diffgcl.algorithms.rgcl import policy_learned_costs
+    from diffgcl.eval.policy import policy_rollouts
+
+    for a, b in zip(
+        jax.tree.leaves(state.policy.params), jax.tree.leaves(m.policy_params), strict=True
+    ):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b[-1]))
+    costs = jax.jit(lambda c, p: policy_learned_costs(rgcl, env, c, p))(
+        state.cost.params, m.policy_params
+    )
+    assert costs.shape == (8, 2) and bool(jnp.isfinite(costs).all())
+    traj = policy_rollouts(
+        env, rgcl.policy_phases.policy, state.policy.params, env.initial_states()
+    )
+    trajectory_cost = jax.vmap(rgcl.network.trajectory_cost, (None, 0, 0))
+    want = trajectory_cost(state.cost.params, traj.X, traj.U)
+    np.testing.assert_allclose(np.asarray(costs[-1]), np.asarray(want), rtol=1e-10)
+    # The first policy (fitted to the initial controllers) does worse by the learned cost.
+    assert float(costs[0].mean()) > float(costs[-1].mean())
 
 
 @pytest.mark.parametrize("on_policy", [pytest.param(False, marks=pytest.mark.slow), True])

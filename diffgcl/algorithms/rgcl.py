@@ -255,7 +255,9 @@ class RGCLMetrics:
     the update; gcl: :class:`GCLMetrics` averaged over the update's gradient steps (scalars;
     zeros on frozen iterations); cost_updated: bool; rolled_back: bool, the NaN guard rejected
     this iteration; sample_X: [G, C, N, T+1, dX] the GPS samples (for the motion plots); policy:
-    :class:`PolicyMetrics` with fields [G, ...] after each S-step (None without a policy).
+    :class:`PolicyMetrics` with fields [G, ...] after each S-step (None without a policy);
+    policy_params: the global policy's parameters after this iteration (None without a policy),
+    to choose among the iterations' policies afterwards (:func:`policy_learned_costs`).
     """
 
     gps: GPSMetrics
@@ -268,6 +270,7 @@ class RGCLMetrics:
     cost_updated: Array
     rolled_back: Array
     policy: PolicyMetrics | None = None
+    policy_params: object = None
 
 
 class RGCL(NamedTuple):
@@ -552,6 +555,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             cost_updated=updated,
             rolled_back=jnp.zeros((), bool),
             policy=jax.tree.map(lambda a: a[None], policy_metrics),
+            policy_params=None if policy is None else policy.params,
         )
         return state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy), metrics
 
@@ -605,6 +609,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             cost_updated=updated,
             rolled_back=jnp.zeros((), bool),
             policy=pm,
+            policy_params=None if policy is None else policy.params,
         )
         return state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy), metrics
 
@@ -651,6 +656,27 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
 
 
 # ---- evaluation (pure, one run) -----------------------------------------------------------------
+
+
+def policy_learned_costs(rgcl: RGCL, env: Env, cost_params: CostParams, policy_params) -> Array:
+    """[I, C]: the learned trajectory cost, under ``cost_params``, of the noise-free rollout of
+    each iteration's global policy (``policy_params`` with a leading [I] axis, e.g.
+    ``RGCLMetrics.policy_params``) from the env's conditions. Lowest = the policy that does best
+    by the cost the run learned, judged without the true cost (``experiments/usv_iterations.py``
+    sets it beside each iteration's held-out figures)."""
+    from diffgcl.eval.policy import policy_rollouts
+
+    if rgcl.policy_phases is None:
+        raise ValueError("policy_learned_costs: this rGCL run has no global policy")
+    policy = rgcl.policy_phases.policy
+    x0 = jnp.asarray(env.initial_states())
+    per_traj = jax.vmap(rgcl.network.trajectory_cost, (None, 0, 0))
+
+    def one(params):
+        traj = policy_rollouts(env, policy, params, x0)
+        return per_traj(cost_params, traj.X, traj.U)
+
+    return jax.lax.map(one, policy_params)
 
 
 def final_rollouts(env: Env, controller: LinearGaussianController) -> Array:
