@@ -169,6 +169,17 @@ def test_checkpoint_kill_resume_matches_uninterrupted(slider, programs, tmp_path
     out = tmp_path / "run"
     with pytest.raises(SimulatedCrash):
         train_seeds(config, env, demos, seeds, out=out, chunk=1, checkpoint_every=1, crash_after=2)
+    # A checkpoint written with other settings (or by another version, with other metrics) is a
+    # one-line error naming the file, not a KeyError from inside NumPy.
+    ckpt = out / "checkpoint.npz"
+    with np.load(ckpt) as f:
+        arrays = {k: f[k] for k in f.files}
+    stale = tmp_path / "stale"
+    stale.mkdir()
+    last = max(int(k[1:]) for k in arrays if k[0] == "m" and k[1:].isdigit())
+    np.savez(stale / "checkpoint.npz", **{k: v for k, v in arrays.items() if k != f"m{last}"})
+    with pytest.raises(ValueError, match="checkpoint.npz: checkpoint of .* another version"):
+        train_seeds(config, env, demos, seeds, out=stale, chunk=1, resume=True, progress=False)
     resumed = train_seeds(config, env, demos, seeds, out=out, chunk=1, resume=True, progress=False)
     assert resumed.resumed_from == 2
     assert resumed.metrics.gps.cost.shape == (2, 3, 1, 1)

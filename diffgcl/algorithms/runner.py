@@ -115,10 +115,19 @@ def _load_checkpoint(path: Path, state_like, metrics_like):
         done = int(f["done"])
         seeds = [int(s) for s in f["seeds"]]
         s_def = jax.tree.structure(state_like)
+        m_def = jax.tree.structure(metrics_like)
+        stored = {p: sum(1 for k in f.files if k[0] == p and k[1:].isdigit()) for p in "sm"}
+        expected = {"s": s_def.num_leaves, "m": m_def.num_leaves if done > 0 else 0}
+        if stored != expected:
+            raise ValueError(
+                f"{path}: checkpoint of {stored['s']} state and {stored['m']} metric arrays, "
+                f"this run's settings and version need {expected['s']} and {expected['m']}: "
+                "it was written with other settings or by another version of diffgcl "
+                "(resume with those, or start a new run folder)"
+            )
         state = jax.tree.unflatten(s_def, [f[f"s{i}"] for i in range(s_def.num_leaves)])
         metrics = None
         if done > 0:
-            m_def = jax.tree.structure(metrics_like)
             metrics = jax.tree.unflatten(m_def, [f[f"m{i}"] for i in range(m_def.num_leaves)])
     return state, metrics, done, seeds
 
