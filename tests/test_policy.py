@@ -11,7 +11,13 @@ import numpy as np
 import pytest
 
 from diffgcl.algorithms.gps import GPSConfig
-from diffgcl.algorithms.mdgps import MDGPSConfig, PolicySettings, make_mdgps
+from diffgcl.algorithms.mdgps import (
+    MDGPSConfig,
+    PolicySettings,
+    condition_weights,
+    make_mdgps,
+    make_policy_phases,
+)
 from diffgcl.policies.mdgps import (
     SStepConfig,
     controller_targets,
@@ -169,6 +175,64 @@ def test_s_step_recovers_a_known_linear_controller():
     np.testing.assert_allclose(np.asarray(got), np.asarray(x_new) @ K.T + k, atol=1e-3)
     np.testing.assert_allclose(np.asarray(state.params.var), 1 / np.diag(np.linalg.inv(cov)))
     assert float(metrics.final_loss) < 1e-5
+
+
+def test_condition_weights_by_hand():
+    cost = jnp.array([1.0, 3.0, 2.0, 25.0, 19.0])  # median 3: 10 × 3 = 30 keeps all, 5 × 3 not
+    np.testing.assert_array_equal(condition_weights(cost, 10.0, 5, jnp.float64), np.ones(5))
+    np.testing.assert_array_equal(condition_weights(cost, 5.0, 5, jnp.float64), [1, 1, 1, 0, 0])
+    np.testing.assert_array_equal(condition_weights(cost, None, 5, jnp.float64), np.ones(5))
+    np.testing.assert_array_equal(condition_weights(None, 5.0, 3, jnp.float64), np.ones(3))
+    # A non-positive median judges nothing (a cost is not known to be positive).
+    zero = jnp.array([0.0, 0.0, 7.0])
+    np.testing.assert_array_equal(condition_weights(zero, 2.0, 3, jnp.float64), np.ones(3))
+
+
+def test_s_step_leaves_out_a_diverged_condition():
+    """Three conditions, two of them with targets from one linear controller and one diverged
+    (its samples far out, its controller's gains wild, its cost 100× the others'): with
+    ``outlier_cost_ratio`` the linear policy recovers the sane controller and reports one
+    condition left out; without it, the diverged condition drags the fit away."""
+    env = dataclasses.replace(ObservedPointMass(), horizon=10)
+    rng = np.random.default_rng(2)
+    T, N, dX, dU = 10, 6, 4, 2
+    K = rng.normal(size=(dU, dX))
+    k = rng.normal(size=dU)
+
+    def ctrl(K, k):
+        return make_controller(
+            jnp.broadcast_to(K, (T, dU, dX)),
+            jnp.broadcast_to(k, (T, dU)),
+            jnp.broadcast_to(0.1 * jnp.eye(dU), (T, dU, dU)),
+        )
+
+    sane = ctrl(K, k)
+    wild = ctrl(50.0 * rng.normal(size=(dU, dX)), 30.0 * rng.normal(size=dU))
+    controllers = jax.tree.map(lambda a, b: jnp.stack([a, a, b]), sane, wild)
+    X = jnp.asarray(
+        rng.normal(size=(3, N, T + 1, dX)) * np.array([1.0, 1.0, 30.0])[:, None, None, None]
+    )
+    O = X  # the policy reads the state itself (a linear policy on [p, v] recovers K exactly)
+    cost = jnp.array([10.0, 12.0, 1000.0])
+    x_new = jnp.asarray(rng.normal(size=(20, dX)))
+    errors = {}
+    for ratio in (10.0, None):
+        settings = PolicySettings(
+            network=PolicyConfig(hidden=()),
+            s_step=SStepConfig(n_steps=2000, batch_size=64, learning_rate=1e-2),
+            outlier_cost_ratio=ratio,
+        )
+        point = dataclasses.replace(env, dO=dX)
+        phases = make_policy_phases(settings, GPSConfig(num_samples=N), point, x0=X[:, 0, 0])
+        state = phases.init(jax.random.PRNGKey(0), O[:2])
+        state, metrics = jax.jit(phases.s_step)(
+            state, jax.random.PRNGKey(1), X, O, controllers, cost
+        )
+        got = jax.vmap(phases.policy.mean_action, in_axes=(None, 0))(state.params, x_new)
+        errors[ratio] = float(np.abs(np.asarray(got) - (np.asarray(x_new) @ K.T + k)).max())
+        assert int(metrics.left_out) == (1 if ratio else 0)
+    assert errors[10.0] < 1e-3, errors
+    assert errors[None] > 0.1, errors
 
 
 def test_mdgps_learns_a_policy_that_holds_from_new_starts():

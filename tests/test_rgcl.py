@@ -446,3 +446,34 @@ def test_builtin_demos_are_cached_by_task(tmp_path, monkeypatch):
 
     monkeypatch.setattr(gps_runner, "run_seeds", no_expert)
     np.testing.assert_array_equal(expert.builtin_demos(env, num_demos=4).X, a.X)
+
+
+def test_training_past_the_demos_window(slider):
+    """With an env horizon longer than the demos' (25 against 15 steps), the controllers and
+    their samples cover all 25 steps while GCL's buffer holds each sample's first 15 steps and
+    its controller's first 15; the target is still reached and held to the end."""
+    env, demos = slider
+    longer = dataclasses.replace(env, horizon=25)
+    rgcl = make_train(tiny_config("v2"), longer)
+    state, m = jax.jit(rgcl.train)(jax.random.PRNGKey(3), demos)
+    assert state.gps.controller.K.shape[1] == 25 and m.sample_X.shape[-2] == 26
+    buffer = jax.tree.map(lambda a: np.asarray(a[0]), state.buffer)  # condition 0
+    assert buffer.X.shape[-2] == 16 and buffer.U.shape[-2] == 15
+    # The last iteration's samples are in the buffer, cut to the window.
+    last = np.asarray(m.sample_X[-1, 0, 0, :, :16])
+    stored = buffer.X[buffer.valid]
+    gaps = np.abs(last[:, None] - stored[None]).max(axis=(-1, -2)).min(axis=1)
+    np.testing.assert_allclose(gaps, 0.0, atol=1e-12)
+    # ... beside the first 15 steps of the controller that drew them.
+    proposal = np.asarray(state.gps.prev_controller.K[0])
+    assert buffer.controllers.K.shape[-3] == 15
+    held = buffer.controllers.K[buffer.controller_valid]
+    assert np.abs(held - proposal[None, :15]).max(axis=(1, 2, 3)).min() < 1e-12
+    assert np.abs(proposal[15:]).max() > 0.0  # the controller does act past the window
+    X = final_rollouts(longer, state.gps.controller)
+    assert bool(env.success(X[0])), X[0, -1]
+
+    with pytest.raises(ValueError, match="demos have 15 steps, more than the env's horizon 10"):
+        jax.jit(make_train(tiny_config("v2"), dataclasses.replace(env, horizon=10)).train)(
+            jax.random.PRNGKey(0), demos
+        )

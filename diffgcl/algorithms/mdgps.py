@@ -67,13 +67,15 @@ class PolicySettings:
     :class:`~diffgcl.policies.mdgps.SStepConfig`; sample_on_policy: draw the GPS samples from the
     global policy instead of the local controllers (GPS's ``sample_on_policy``); obs_noise: the
     policy sees noisy sensors in the samples and the S-step (noise-free in its linearisation and
-    evaluation).
+    evaluation); outlier_cost_ratio: a condition whose samples cost more than this multiple of
+    the median condition's is left out of the S-step (:func:`condition_weights`; None: none is).
     """
 
     network: PolicyConfig = field(default_factory=PolicyConfig)
     s_step: SStepConfig = field(default_factory=SStepConfig)
     sample_on_policy: bool = False
     obs_noise: bool = False
+    outlier_cost_ratio: float | None = None
 
 
 @struct.dataclass
@@ -114,6 +116,22 @@ def make_policy(settings: PolicySettings, env: Env) -> GaussianPolicy:
         raise ValueError(f"env {env.name!r} has no observations (dO = 0) for a global policy")
     dtype = jnp.asarray(env.initial_states()).dtype
     return GaussianPolicy(settings.network, env.dO, env.dU, param_dtype=dtype)
+
+
+def condition_weights(cost: Array | None, ratio: float | None, C: int, dtype) -> Array:
+    """Each condition's weight in the S-step, [C]: 0 where its samples' mean cost ``cost: [C]``
+    is more than ``ratio`` × the median condition's, else 1 (all ones without a cost or ratio).
+
+    A condition whose samples diverged (true cost 10⁶ and more where the others have 10³) gives
+    the S-step targets far outside every other condition's states; regressed on them, the
+    policy is pulled away everywhere, and since each controller's C-step is held within a KL
+    step of the policy's linearisation, the divergence spreads to every condition (docs/usv.md).
+    """
+    if cost is None or ratio is None:
+        return jnp.ones((C,), dtype)
+    median = jnp.median(cost)
+    keep = (cost <= ratio * median) | ~(median > 0)
+    return keep.astype(dtype)
 
 
 def make_policy_phases(
@@ -181,10 +199,15 @@ def make_policy_phases(
         obs = lambda x: env.obs(x)
         return jax.vmap(lambda x: linearise_policy(policy, state.params, obs, x))(X)
 
-    def s_step(state: PolicyState, key: PRNGKey, X: Array, O: Array, controllers):
+    def s_step(state: PolicyState, key: PRNGKey, X: Array, O: Array, controllers, cost=None):
         mu, prec = jax.vmap(controller_targets)(controllers, X)  # [C, N, T, ...]
         flat = lambda a, k: a.reshape(-1, *a.shape[k:])
-        return learner.s_step(state, key, flat(O[:, :, :-1], 3), flat(mu, 3), flat(prec, 3))
+        w_cond = condition_weights(cost, settings.outlier_cost_ratio, X.shape[0], X.dtype)
+        w = jnp.broadcast_to(w_cond[:, None, None], mu.shape[:3])
+        state, metrics = learner.s_step(
+            state, key, flat(O[:, :, :-1], 3), flat(mu, 3), flat(prec, 3), flat(w, 3)
+        )
+        return state, metrics.replace(left_out=jnp.sum(w_cond == 0).astype(jnp.int32))
 
     def rollouts(state: PolicyState, x0: Array) -> Trajectory:
         return policy_rollouts(env, policy, state.params, x0)
@@ -290,7 +313,9 @@ def make_mdgps(
         quad = phases.expand(cost, samples)
         step_mult = phases.adapt_step(state.gps, samples, quad, current=anchor, shared=True)
         gps, gps_metrics = phases.inner(state.gps, samples, quad, step_mult, anchor=anchor)
-        policy, s_metrics = policy_phases.s_step(state.policy, key_s, samples.X, O, gps.controller)
+        policy, s_metrics = policy_phases.s_step(
+            state.policy, key_s, samples.X, O, gps.controller, cost=gps_metrics.cost
+        )
         metrics = MDGPSMetrics(gps=gps_metrics, policy=policy_phases.metrics(policy, s_metrics))
         return MDGPSState(gps=gps, policy=policy), metrics
 

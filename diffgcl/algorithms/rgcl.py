@@ -47,6 +47,13 @@ records the policy's linearisation at them as their proposal (an approximation o
 density, exact for a policy linear in the state). The policy's observation normaliser is fitted
 once from the demonstrations' observations.
 
+Training past the demos' window: the env's horizon T may exceed the demos' T_d (their ``U``'s
+time axis). The controllers, their samples and the policy then cover all T steps, while GCL compares
+the demos with the samples' first T_d steps only (the fusion buffer stores those steps and the
+proposals' first T_d steps; the samples' learned cost in the metrics is over the same steps). A
+time-invariant cost learned on the window is so also optimised past it, where a boat must hold
+its course after the demos' recordings end.
+
 NaN guard (pure, per run): when an iteration turns a finite value anywhere in the state into a
 non-finite one, the iteration is rolled back (the previous state is kept,
 ``metrics.rolled_back`` is set) and the next step tries again with a fresh key.
@@ -354,13 +361,39 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     def residual(params: CostParams):
         return network.bind_residual(params)
 
+    def window(demos: DemoBatch, controller=None, X=None, U=None):
+        """The first T_d steps (the demos' horizon) of controllers [C, T, ...], X [C, N, T+1, dX]
+        and U [C, N, T, dU]; see "Training past the demos' window" in the module docstring."""
+        Td = demos.U.shape[-2]
+        if Td > T:
+            raise ValueError(
+                f"rGCL: the demos have {Td} steps, more than the env's horizon {T}; crop the "
+                "demos or lengthen the env's horizon"
+            )
+        ctrl = None if controller is None else jax.tree.map(lambda a: a[:, :Td], controller)
+        return (
+            ctrl,
+            None if X is None else X[..., : Td + 1, :],
+            None if U is None else U[..., :Td, :],
+        )
+
+    def store(buffer: SampleBuffer, demos: DemoBatch, proposal, X: Array, U: Array):
+        """Add each condition's samples (their window) and their proposal to the buffer."""
+        return jax.vmap(buffer_add)(buffer, *window(demos, proposal, X, U))
+
     def learned_cost(params: CostParams, X: Array, U: Array) -> Array:
         """Mean learned trajectory cost of trajectories X: [C, N, T+1, dX] per condition: [C]."""
         per_traj = jax.vmap(jax.vmap(network.trajectory_cost, (None, 0, 0)), (None, 0, 0))
         return per_traj(params, X, U).mean(axis=-1)
 
+    def window_cost(params: CostParams, demos: DemoBatch, samples: GPSSamples) -> Array:
+        """The samples' mean learned cost over the demos' window, per condition: [C]."""
+        _, X, U = window(demos, X=samples.X, U=samples.U)
+        return learned_cost(params, X, U)
+
     def demo_likelihood(controller: LinearGaussianController, demos: DemoBatch) -> Array:
         """The demos' mean action log-likelihood under controllers [C, T, ...]: [C]."""
+        controller, _, _ = window(demos, controller)
         return jax.vmap(demo_log_likelihood)(controller, demos.X, demos.U)
 
     def calibrate(params: CostParams, demos: DemoBatch, updates: Array | int) -> CostParams:
@@ -397,9 +430,11 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     ) -> tuple[WeightedSamples, WeightedSamples]:
         """(samples [C, S], demos [C, N]) with their log proposal densities."""
         if config.sample_source == "model" and samples is not None:
+            sample_ctrl, _, _ = window(demos, sample_ctrl)
+            dynamics = jax.tree.map(lambda a: a[:, : demos.U.shape[-2]], samples.dynamics)
             return jax.vmap(model_weighted_samples, in_axes=(0, 0, 0, 0, 0, 0, None))(
                 jax.random.split(key, C),
-                samples.dynamics,
+                dynamics,
                 sample_ctrl,
                 samples.x0,
                 demos.X,
@@ -457,7 +492,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             prev_params=params,
         )
         Kc = config.buffer_controllers
-        empty = init_buffer(N * Kc, Kc, T, dX, dU, dtype)
+        empty = init_buffer(N * Kc, Kc, demos.U.shape[-2], dX, dU, dtype)
         buffer = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), empty)
         if config.pretrain and gcl_cfg.pretrain_steps > 0:
             pre_buffer = buffer
@@ -467,7 +502,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
                     env, ctrl, x0, k, N, smooth_sigma=gps_config.smooth_sigma
                 )
                 samples = jax.vmap(sample)(gps.controller, X0, jax.random.split(key_samples, C))
-                pre_buffer = jax.vmap(buffer_add)(buffer, gps.controller, samples.X, samples.U)
+                pre_buffer = store(buffer, demos, gps.controller, samples.X, samples.U)
             samples_w, demos_w = weighted_sets(pre_buffer, demos, key_samples)
             cost, _ = optimise(cost, key_pretrain, demos_w, samples_w, gcl_cfg.pretrain_steps)
         params = calibrate(cost.params, demos, 0)
@@ -522,12 +557,17 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         step = phases.adapt_step(gps, samples, quad, current=anchor, shared=anchor is not None)
         return cap_step(state, step)
 
-    def s_step(policy, key: PRNGKey, samples: GPSSamples, gps: GPSState):
+    def s_step(policy, key: PRNGKey, samples: GPSSamples, gps: GPSState, params: CostParams):
+        """The S-step; a diverged condition is judged by its samples' learned cost (``params``,
+        the cost the controllers were just optimised for) over the whole horizon."""
         if policy_phases is None:
             return None, None
         key_obs, key_fit = jax.random.split(key)
         O = policy_phases.observe(samples.X, key_obs)
-        policy, s_metrics = policy_phases.s_step(policy, key_fit, samples.X, O, gps.controller)
+        cost = learned_cost(params, samples.X, samples.U)
+        policy, s_metrics = policy_phases.s_step(
+            policy, key_fit, samples.X, O, gps.controller, cost=cost
+        )
         return policy, policy_phases.metrics(policy, s_metrics)
 
     def iteration_v2(state: RGCLState, key: PRNGKey, demos: DemoBatch):
@@ -537,16 +577,16 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         # The step is judged with the cost the current controller was optimised for.
         quad_prev = phases.expand(residual(state.cost.params), samples)
         step_mult = adapt(state, gps, samples, quad_prev, anchor)
-        buffer = jax.vmap(buffer_add)(state.buffer, proposal, samples.X, samples.U)
+        buffer = store(state.buffer, demos, proposal, samples.X, samples.U)
         cost, gcl_metrics, updated = cost_step(
             state, state.cost, key_cost, demos, samples, proposal, buffer
         )
         quad = phases.expand(residual(cost.params), samples)
         gps, gps_metrics = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
-        policy, policy_metrics = s_step(state.policy, key_policy, samples, gps)
+        policy, policy_metrics = s_step(state.policy, key_policy, samples, gps, cost.params)
         metrics = RGCLMetrics(
             gps=jax.tree.map(lambda a: a[None], gps_metrics),
-            learned_cost=learned_cost(cost.params, samples.X, samples.U)[None],
+            learned_cost=window_cost(cost.params, demos, samples)[None],
             demo_learned_cost=learned_cost(cost.params, demos.X, demos.U),
             demo_log_likelihood=demo_likelihood(gps.controller, demos)[None],
             log_temperature=cost.params.log_temperature,
@@ -578,10 +618,10 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             )
             quad_judged = phases.expand(residual(judged), samples)
             step_mult = adapt(state, gps, samples, quad_judged, anchor)
-            buffer = jax.vmap(buffer_add)(buffer, proposal, samples.X, samples.U)
+            buffer = store(buffer, demos, proposal, samples.X, samples.U)
             new_gps, m = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
-            policy, pm = s_step(policy, key_policy, samples, new_gps)
-            lc = learned_cost(params, samples.X, samples.U)
+            policy, pm = s_step(policy, key_policy, samples, new_gps, params)
+            lc = window_cost(params, demos, samples)
             ll = demo_likelihood(new_gps.controller, demos)
             out = (m, lc, ll, samples.X, pm)
             return (new_gps, policy, buffer, samples, proposal), out

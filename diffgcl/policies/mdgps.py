@@ -79,11 +79,13 @@ class PolicyState:
 @struct.dataclass
 class SStepMetrics:
     """loss: mean S-step loss over the update's steps; final_loss: the last step's; entropy:
-    the policy's action entropy per step after the update (nats)."""
+    the policy's action entropy per step after the update (nats); left_out: conditions whose
+    samples were left out (:func:`diffgcl.algorithms.mdgps.condition_weights`; 0 here)."""
 
     loss: Array
     final_loss: Array
     entropy: Array
+    left_out: Array
 
 
 def controller_targets(controller: LinearGaussianController, X: Array) -> tuple[Array, Array]:
@@ -198,7 +200,10 @@ def make_policy_learner(
         var = policy_variance(prec, w, config.ent_reg)
         state = state.replace(params=state.params.replace(var=var.astype(state.params.var.dtype)))
         metrics = SStepMetrics(
-            loss=losses.mean(), final_loss=losses[-1], entropy=policy.entropy(state.params)
+            loss=losses.mean(),
+            final_loss=losses[-1],
+            entropy=policy.entropy(state.params),
+            left_out=jnp.zeros((), jnp.int32),
         )
         return state, metrics
 
