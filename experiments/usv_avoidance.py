@@ -43,7 +43,7 @@ def fast_configs():
             "policy.s_step.n_steps=100",
         ],
     )
-    task = UsvTaskConfig(before=100, after=140)
+    task = UsvTaskConfig(before=100, after=140, train_extra=40)
     main = UsvRunConfig(task=task, rgcl=rgcl, heldout=32, expert_iterations=4)
     radar = dataclasses.replace(
         main,
@@ -108,6 +108,12 @@ def main(argv=None) -> int:
         default=None,
         help="how the policies read their range beams (default: the task's, saturated)",
     )
+    parser.add_argument(
+        "--train-extra",
+        type=int,
+        default=None,
+        help="steps trained past the demos' window (UsvTaskConfig.train_extra)",
+    )
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None, help="plots (a new or own folder)")
@@ -143,6 +149,11 @@ def main(argv=None) -> int:
             dataclasses.replace(
                 c, task=dataclasses.replace(c.task, range_encoding=args.range_encoding)
             )
+            for c in (main_cfg, radar_cfg)
+        )
+    if args.train_extra is not None:
+        main_cfg, radar_cfg = (
+            dataclasses.replace(c, task=dataclasses.replace(c.task, train_extra=args.train_extra))
             for c in (main_cfg, radar_cfg)
         )
     if args.set:

@@ -32,6 +32,7 @@ def main(argv=None) -> int:
     parser.add_argument("--heldout", type=int, default=64)
     parser.add_argument("--heldout-seed", type=int, default=7)
     parser.add_argument("--extra", type=int, default=150, help="steps judged past the window")
+    parser.add_argument("--train-extra", type=int, default=0, help="steps trained past the window")
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -54,13 +55,17 @@ def main(argv=None) -> int:
     rgcl_config = with_overrides(usv_preset(), args.set) if args.set else usv_preset()
     demos, folder = U.builtin_demos()
     config = U.UsvRunConfig(
-        methods=(), heldout=args.heldout, heldout_seed=args.heldout_seed, eval_extra=args.extra
+        task=U.UsvTaskConfig(train_extra=args.train_extra),
+        methods=(),
+        heldout=args.heldout,
+        heldout_seed=args.heldout_seed,
+        eval_extra=args.extra,
     )
     base = U.run_usv(
         demos, config, manifest=folder / "manifest.json", true_params=true_params(), verbose=False
     )
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
-    rgcl = make_train(rgcl_config, base.env)
+    rgcl = make_train(rgcl_config, base.train_env)
     batch = U.demo_batch_pooled(base.demos, env=base.env)
     print(f"rGCL + MDGPS, seeds {seeds}", flush=True)
     (state, metrics), seconds = U._batched(rgcl.train, seeds, batch)
@@ -114,6 +119,7 @@ def main(argv=None) -> int:
         "seeds": seeds,
         "heldout": args.heldout,
         "heldout_seed": args.heldout_seed,
+        "training_horizon": base.train_env.horizon,
         "evaluation_horizon": base.env.horizon + args.extra,
         "rgcl_seconds": seconds,
         "wall_seconds": time.perf_counter() - t0,

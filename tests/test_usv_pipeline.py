@@ -184,7 +184,10 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
         ],
     )
     config = U.UsvRunConfig(
-        task=U.UsvTaskConfig(before=60, after=100), rgcl=rgcl, heldout=4, expert_iterations=2
+        task=U.UsvTaskConfig(before=60, after=100, train_extra=20),
+        rgcl=rgcl,
+        heldout=4,
+        expert_iterations=2,
     )
     run = U.run_usv(demos, config, manifest=folder / "manifest.json", true_params=true_params())
     for name in U.METHODS:
@@ -196,6 +199,10 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
         T_eval = config.task.horizon + config.eval_extra  # judged past the window
         assert run.tracks[name].shape == (1, 4, T_eval + 1, run.env.dX)
     assert run.summary["hull_identification"]["max_relative_error"] < 0.5
+    # Trained past the window: controllers [S, C, T, ...] over 180 steps, GCL's buffer over 160.
+    assert run.summary["training_horizon"] == 180 == run.train_env.horizon
+    assert run.rgcl_state.gps.controller.K.shape[2] == 180
+    assert run.rgcl_state.buffer.X.shape[-2] == 161
     out = tmp_path / "run"
     out.mkdir()
     (out / "notes.txt").write_text("mine")

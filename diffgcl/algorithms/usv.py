@@ -55,7 +55,12 @@ class UsvTaskConfig:
     sets: the bag sets whose episodes are used (set 1 of the seed has no LiDAR, set 2 has it);
     observation: the policy's observation set (:data:`diffgcl.envs.usv.OBSERVATIONS`);
     range_encoding: how the policy reads the ranges (:func:`diffgcl.envs.usv.encode_ranges`);
-    max_conditions: use at most this many demos (None: all); default_pole_radius: m.
+    max_conditions: use at most this many demos (None: all); default_pole_radius: m;
+    train_extra: steps the controllers and the policy are trained past the window (their
+    horizon is ``horizon + train_extra``; GCL compares the demos with the window's steps only,
+    see :mod:`diffgcl.algorithms.rgcl`), so that holding the course after the recordings end is
+    trained too (trained on the window alone, policies drifted off the line after it, and runs
+    diverged on some seeds: docs/usv.md).
     """
 
     before: int = 120
@@ -65,10 +70,15 @@ class UsvTaskConfig:
     range_encoding: str = "saturated"
     max_conditions: int | None = None
     default_pole_radius: float = DEFAULT_POLE_RADIUS
+    train_extra: int = 150
 
     @property
     def horizon(self) -> int:
         return self.before + self.after
+
+    @property
+    def training_horizon(self) -> int:
+        return self.horizon + self.train_extra
 
 
 # ---- bags and demos -----------------------------------------------------------------------------
@@ -427,7 +437,8 @@ class UsvRunConfig:
 @dataclass
 class UsvRun:
     """What :func:`run_usv` returns: ``summary`` (JSON-ready figures), the task env on the
-    identified hull (``env``, demos' conditions) and on the true one (``env_true``, held-out
+    identified hull (``env``, demos' conditions; ``train_env`` the same with the training
+    horizon, :attr:`UsvTaskConfig.training_horizon`) and on the true one (``env_true``, held-out
     starts ``x0_heldout``), the demos in the task layout, and per method its policy, parameters
     (leading seed axis) and held-out tracks [S, B, T+1, 11]; the rGCL state (``rgcl_state``)."""
 
@@ -440,6 +451,7 @@ class UsvRun:
     tracks: dict
     rgcl_state: object = None
     rgcl: object = None
+    train_env: UsvEnv | None = None
 
 
 def _say(verbose: bool, text: str) -> None:
@@ -534,6 +546,7 @@ def run_usv(
     truth = true_params if true_params is not None else params
 
     env = make_task_env(windows, radii, params, task)
+    train_env = make_task_env(windows, radii, params, task, horizon=task.training_horizon)
     task_demos = usv_demo_set(env, windows, radii)
     needs_dynamics = rgcl_config.temperature != "likelihood" and "rgcl" in config.methods
     batch = demo_batch_pooled(task_demos, env=env if needs_dynamics else None)
@@ -556,7 +569,8 @@ def run_usv(
         )
     }
     summary["evaluation_horizon"] = task.horizon + config.eval_extra
-    run = UsvRun(summary, env, env_true, task_demos, x0_heldout, {}, {})
+    summary["training_horizon"] = task.training_horizon
+    run = UsvRun(summary, env, env_true, task_demos, x0_heldout, {}, {}, train_env=train_env)
     eval_key = jax.random.PRNGKey(config.heldout_seed + 1)
 
     def judge(name: str, policy, params) -> None:
@@ -581,10 +595,10 @@ def run_usv(
         from diffgcl.algorithms.rgcl import final_rollouts, make_train
 
         _say(verbose, f"rGCL + MDGPS on the identified hull, seeds {list(config.seeds)}")
-        rgcl = make_train(rgcl_config, env)
+        rgcl = make_train(rgcl_config, train_env)
         (state, metrics), seconds = _batched(rgcl.train, config.seeds, batch)
         Xc = np.asarray(
-            jax.vmap(lambda c: final_rollouts(env, c))(
+            jax.vmap(lambda c: final_rollouts(train_env, c))(
                 jax.tree.map(jnp.asarray, state.gps.controller)
             )
         )
@@ -611,7 +625,9 @@ def run_usv(
             maxent=False,
             gauss_newton=False,
         )
-        md = make_mdgps(MDGPSConfig(gps=gps, policy=rgcl_config.policy), env, env.expert_cost)
+        md = make_mdgps(
+            MDGPSConfig(gps=gps, policy=rgcl_config.policy), train_env, train_env.expert_cost
+        )
         (state, _), seconds = _batched(md.train, config.seeds)
         summary["expert"] = {"seconds": seconds}
         judge("expert", md.policy_phases.policy, state.policy.params)

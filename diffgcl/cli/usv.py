@@ -3,7 +3,8 @@ printing; the pipeline is :func:`diffgcl.algorithms.usv.run_usv`, the pictures
 :func:`diffgcl.viz.usv.save_usv_plots`).
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
-                [--range-encoding saturated|metres] [--seeds 1] [--heldout 256] [--fast]
+                [--range-encoding saturated|metres] [--train-extra 150] [--seeds 1]
+                [--heldout 256] [--fast]
                 [--set a.b=value] [--out runs/usv]
 
 Without ``--bags`` it runs on the built-in synthetic Odin-like bags (written once into the
@@ -49,10 +50,12 @@ def usv_command(args) -> int:
     )
     rgcl = with_overrides(usv_preset(), args.set)
     if args.fast:
-        task = dataclasses.replace(task, before=100, after=140)
+        task = dataclasses.replace(task, before=100, after=140, train_extra=40)
         rgcl = with_overrides(
             rgcl, ["iterations=6", "freeze_last=2", "gcl.pretrain_steps=100", "gcl.n_steps=20"]
         )
+    if args.train_extra is not None:
+        task = dataclasses.replace(task, train_extra=args.train_extra)
     config = UsvRunConfig(
         task=task,
         rgcl=rgcl,
@@ -80,6 +83,12 @@ def register(subparsers) -> None:
         choices=("saturated", "metres"),  # diffgcl.envs.usv.RANGE_ENCODINGS
         default="saturated",
         help="how the policy reads its range beams (default saturated: metres near, alike far)",
+    )
+    p.add_argument(
+        "--train-extra",
+        type=int,
+        default=None,
+        help="steps trained past the demos' window (default 150, with --fast 40)",
     )
     p.add_argument("--methods", default="rgcl,expert,bc", help="of rgcl, expert, bc")
     p.add_argument("--seeds", type=int, default=1)
