@@ -32,7 +32,9 @@ def main(argv=None) -> int:
     parser.add_argument("--heldout", type=int, default=64)
     parser.add_argument("--heldout-seed", type=int, default=7)
     parser.add_argument("--extra", type=int, default=150, help="steps judged past the window")
-    parser.add_argument("--train-extra", type=int, default=0, help="steps trained past the window")
+    parser.add_argument(
+        "--train-extra", type=int, default=None, help="steps trained past the window (150)"
+    )
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
@@ -55,7 +57,11 @@ def main(argv=None) -> int:
     rgcl_config = with_overrides(usv_preset(), args.set) if args.set else usv_preset()
     demos, folder = U.builtin_demos()
     config = U.UsvRunConfig(
-        task=U.UsvTaskConfig(train_extra=args.train_extra),
+        task=U.UsvTaskConfig(
+            train_extra=U.UsvTaskConfig.train_extra
+            if args.train_extra is None
+            else args.train_extra
+        ),
         methods=(),
         heldout=args.heldout,
         heldout_seed=args.heldout_seed,
