@@ -361,18 +361,19 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     def residual(params: CostParams):
         return network.bind_residual(params)
 
-    def window(demos: DemoBatch, controller=None, X=None, U=None):
-        """The first T_d steps (the demos' horizon) of controllers [C, T, ...], X [C, N, T+1, dX]
-        and U [C, N, T, dU]; see "Training past the demos' window" in the module docstring."""
+    def window(demos: DemoBatch, per_step=None, X=None, U=None):
+        """The first T_d steps (the demos' horizon) of per-step fields [C, T, ...] (controllers,
+        dynamics), X [C, N, T+1, dX] and U [C, N, T, dU]; see "Training past the demos' window"
+        in the module docstring."""
         Td = demos.U.shape[-2]
         if Td > T:
             raise ValueError(
                 f"rGCL: the demos have {Td} steps, more than the env's horizon {T}; crop the "
                 "demos or lengthen the env's horizon"
             )
-        ctrl = None if controller is None else jax.tree.map(lambda a: a[:, :Td], controller)
+        head = None if per_step is None else jax.tree.map(lambda a: a[:, :Td], per_step)
         return (
-            ctrl,
+            head,
             None if X is None else X[..., : Td + 1, :],
             None if U is None else U[..., :Td, :],
         )
@@ -431,7 +432,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         """(samples [C, S], demos [C, N]) with their log proposal densities."""
         if config.sample_source == "model" and samples is not None:
             sample_ctrl, _, _ = window(demos, sample_ctrl)
-            dynamics = jax.tree.map(lambda a: a[:, : demos.U.shape[-2]], samples.dynamics)
+            dynamics, _, _ = window(demos, samples.dynamics)
             return jax.vmap(model_weighted_samples, in_axes=(0, 0, 0, 0, 0, 0, None))(
                 jax.random.split(key, C),
                 dynamics,
@@ -564,7 +565,8 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             return None, None
         key_obs, key_fit = jax.random.split(key)
         O = policy_phases.observe(samples.X, key_obs)
-        cost = learned_cost(params, samples.X, samples.U)
+        judged = settings.outlier_cost_ratio is not None
+        cost = learned_cost(params, samples.X, samples.U) if judged else None
         policy, s_metrics = policy_phases.s_step(
             policy, key_fit, samples.X, O, gps.controller, cost=cost
         )
