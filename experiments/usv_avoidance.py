@@ -114,6 +114,13 @@ def main(argv=None) -> int:
         default=None,
         help="steps trained past the demos' window (UsvTaskConfig.train_extra)",
     )
+    parser.add_argument(
+        "--margins",
+        type=lambda text: tuple(float(d) for d in text.split(",")),
+        default=None,
+        help="clearance margins (m) of the learned cost's barriers, e.g. 5,10,20,30 "
+        "(UsvTaskConfig.proximity_margins)",
+    )
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None, help="plots (a new or own folder)")
@@ -144,18 +151,16 @@ def main(argv=None) -> int:
         main_cfg = dataclasses.replace(
             main_cfg, task=dataclasses.replace(main_cfg.task, max_conditions=args.conditions)
         )
-    if args.range_encoding is not None:
-        main_cfg, radar_cfg = (
-            dataclasses.replace(
-                c, task=dataclasses.replace(c.task, range_encoding=args.range_encoding)
-            )
-            for c in (main_cfg, radar_cfg)
-        )
-    if args.train_extra is not None:
-        main_cfg, radar_cfg = (
-            dataclasses.replace(c, task=dataclasses.replace(c.task, train_extra=args.train_extra))
-            for c in (main_cfg, radar_cfg)
-        )
+    task_changes = {
+        "range_encoding": args.range_encoding,
+        "train_extra": args.train_extra,
+        "proximity_margins": args.margins,
+    }
+    task_changes = {k: v for k, v in task_changes.items() if v is not None}
+    main_cfg, radar_cfg = (
+        dataclasses.replace(c, task=dataclasses.replace(c.task, **task_changes))
+        for c in (main_cfg, radar_cfg)
+    )
     if args.set:
         rgcl = with_overrides(main_cfg.rgcl or usv_preset(), args.set)
         main_cfg = dataclasses.replace(main_cfg, rgcl=rgcl)

@@ -80,6 +80,9 @@ def test_observation_layouts_and_features():
         make_usv_env(observation="sonar")
     with pytest.raises(ValueError, match="radius"):
         make_usv_env(np.zeros((1, 11)))
+    for margins in [(), (10.0, 5.0), (0.0, 5.0)]:
+        with pytest.raises(ValueError, match="proximity margins"):
+            make_usv_env(proximity_margins=margins)
 
 
 def test_range_encodings():
@@ -225,17 +228,24 @@ def test_network_on_task_features_is_the_network_on_the_features():
     )
 
 
-def test_cost_residuals_square_to_the_sailors_terms():
+@pytest.mark.parametrize("margins", [None, (5.0, 15.0, 25.0)])
+def test_cost_residuals_square_to_the_sailors_terms(margins):
     """The weighted cost's residuals: squared heading residual = 2(1 − cos ψ) (periodic), progress
     is the speed made good along the course, the barriers are the softplus depth inside each
-    margin (zero-ish well outside), and all are differentiable in the state."""
+    margin (zero-ish well outside; the default margins or the task's own), and all are
+    differentiable in the state."""
     from diffgcl.envs.usv import COST_RESIDUAL_NAMES, PROXIMITY_MARGINS, PROXIMITY_SOFTNESS
 
-    usv = make_usv_env(horizon=20)
+    if margins is None:
+        usv, margins = make_usv_env(horizon=20), PROXIMITY_MARGINS
+        assert usv.cost_residual_names == COST_RESIDUAL_NAMES
+    else:
+        usv = make_usv_env(horizon=20, proximity_margins=margins)
+    assert usv.cost_residual_names[6:] == tuple(f"inside_{d:g}m" for d in margins)
     X = jnp.concatenate([random_states(jax.random.PRNGKey(3), 16), jnp.full((16, 1), 0.6)], 1)
     X = X.astype(usv.x0.dtype)
     R = jax.vmap(usv.cost_residuals)(X)
-    assert R.shape == (16, 6 + len(PROXIMITY_MARGINS)) == (16, len(COST_RESIDUAL_NAMES))
+    assert R.shape == (16, 6 + len(margins)) == (16, len(usv.cost_residual_names))
     psi = np.asarray(X[:, hull_sim.IX_PSI])
     np.testing.assert_allclose(np.asarray(R[:, 1]) ** 2, 2 * (1 - np.cos(psi)), rtol=1e-5)
     np.testing.assert_allclose(np.asarray(R[:, 0]), np.asarray(X[:, hull_sim.IX_PY]))
@@ -244,7 +254,7 @@ def test_cost_residuals_square_to_the_sailors_terms():
     )
     clearance = np.asarray(jax.vmap(usv.clearance)(X), dtype=np.float64)
     s = PROXIMITY_SOFTNESS
-    for k, d in enumerate(PROXIMITY_MARGINS):
+    for k, d in enumerate(margins):
         expected = s * np.logaddexp(0.0, (d - clearance) / s)
         np.testing.assert_allclose(np.asarray(R[:, 6 + k]), expected, rtol=1e-4, atol=1e-6)
     far = X[0].at[hull_sim.SL_OBS].set(X[0, :2] + jnp.array([200.0, 0.0]))
@@ -257,7 +267,7 @@ def test_cost_residuals_square_to_the_sailors_terms():
         atol=1e-6,
     )
     J = jax.jacfwd(usv.cost_residuals)(X[0])
-    assert J.shape == (10, usv.dX) and np.isfinite(np.asarray(J)).all()
+    assert J.shape == (6 + len(margins), usv.dX) and np.isfinite(np.asarray(J)).all()
 
 
 def test_action_limit_residuals_are_the_expert_costs_limit_barrier():

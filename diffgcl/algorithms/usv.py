@@ -40,7 +40,7 @@ import numpy as np
 
 from diffgcl.algorithms.rgcl import DemoBatch
 from diffgcl.data.demos import DemoError, DemoSet
-from diffgcl.envs.usv import UsvEnv, encode_ranges, make_usv_env
+from diffgcl.envs.usv import PROXIMITY_MARGINS, UsvEnv, encode_ranges, make_usv_env
 from diffgcl.sim import hull as hull_sim
 from diffgcl.types import Array, PRNGKey
 
@@ -60,7 +60,8 @@ class UsvTaskConfig:
     horizon is ``horizon + train_extra``; GCL compares the demos with the window's steps only,
     see :mod:`diffgcl.algorithms.rgcl`), so that holding the course after the recordings end is
     trained too (trained on the window alone, policies drifted off the line after it, and runs
-    diverged on some seeds: docs/usv.md).
+    diverged on some seeds: docs/usv.md); proximity_margins: the clearances (m) of the learned
+    cost's barrier residuals (:meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`).
     """
 
     before: int = 120
@@ -71,6 +72,7 @@ class UsvTaskConfig:
     max_conditions: int | None = None
     default_pole_radius: float = DEFAULT_POLE_RADIUS
     train_extra: int = 150
+    proximity_margins: tuple[float, ...] = PROXIMITY_MARGINS
 
     @property
     def horizon(self) -> int:
@@ -203,6 +205,7 @@ def make_task_env(
         horizon=config.horizon if horizon is None else horizon,
         observation=config.observation,
         range_encoding=config.range_encoding,
+        proximity_margins=config.proximity_margins,
     )
 
 
@@ -470,18 +473,17 @@ def _batched(fn, seeds, *args):
     return jax.tree.map(np.asarray, out), time.perf_counter() - t0
 
 
-def learned_cost_weights(network, params) -> dict:
-    """The weighted-form cost per residual (:data:`diffgcl.envs.usv.COST_RESIDUAL_NAMES`), per
+def learned_cost_weights(network, params, names: tuple[str, ...]) -> dict:
+    """The weighted-form cost per residual (``names``: :attr:`diffgcl.envs.usv.UsvEnv.
+    cost_residual_names`), per
     training seed (``params`` with a leading seed axis): ``per_unit`` — its weight per squared
     unit of the residual, at the cost's temperature; ``log_w`` — the learned θ̃ (0 at the start,
     where every residual weighs 1 per squared RMS of the demos; their mean stays 0)."""
-    from diffgcl.envs.usv import COST_RESIDUAL_NAMES
-
     w = np.asarray(jax.vmap(lambda p: network.feature_weights(p) * network.temperature(p))(params))
     theta = np.asarray(jax.vmap(network.log_weights)(params))
     return {
         name: {"per_unit": w[:, k].tolist(), "log_w": theta[:, k].tolist()}
-        for k, name in enumerate(COST_RESIDUAL_NAMES)
+        for k, name in enumerate(names)
     }
 
 
@@ -609,7 +611,9 @@ def run_usv(
             "true_cost_per_iteration": np.asarray(metrics.gps.cost).mean((0, 2)).tolist(),
         }
         if rgcl.network.config.form == "weighted" and rgcl_config.network.features == "env":
-            summary["rgcl"]["cost_weights"] = learned_cost_weights(rgcl.network, state.cost.params)
+            summary["rgcl"]["cost_weights"] = learned_cost_weights(
+                rgcl.network, state.cost.params, env.cost_residual_names
+            )
         run.rgcl_state, run.rgcl = state, rgcl
         judge("rgcl", rgcl.policy_phases.policy, state.policy.params)
 

@@ -71,15 +71,22 @@ from diffgcl.types import Array, PRNGKey
 IX_RADIUS = 10
 PROXIMITY_MARGINS = (5.0, 10.0, 20.0, 30.0)  # m of clearance, the weighted cost's barriers
 PROXIMITY_SOFTNESS = 2.0  # m
-COST_RESIDUAL_NAMES = (
+COURSE_RESIDUAL_NAMES = (
     "cross_track",
     "heading",
     "surge_error",
     "progress_error",
     "sway",
     "yaw_rate",
-    *(f"inside_{d:g}m" for d in PROXIMITY_MARGINS),
 )
+
+
+def cost_residual_names(margins=PROXIMITY_MARGINS) -> tuple[str, ...]:
+    """Names of :meth:`UsvEnv.cost_residuals` for clearance ``margins`` (m)."""
+    return (*COURSE_RESIDUAL_NAMES, *(f"inside_{d:g}m" for d in margins))
+
+
+COST_RESIDUAL_NAMES = cost_residual_names()
 DX = 11
 OBSERVATIONS = ("full", "radar", "ranges")
 RANGE_ENCODINGS = ("metres", "saturated")
@@ -143,6 +150,7 @@ class UsvEnv:
     range_encoding: str = "metres"
     sensors: PoleSensorModel = PoleSensorModel()
     weights: HullCostWeights = HullCostWeights()
+    proximity_margins: tuple[float, ...] = PROXIMITY_MARGINS
     horizon: int = 240
     course_tolerance: float = 5.0
     heading_tolerance: float = float(np.deg2rad(20.0))
@@ -309,15 +317,21 @@ class UsvEnv:
             ]
         )
 
+    @property
+    def cost_residual_names(self) -> tuple[str, ...]:
+        """Names of :meth:`cost_residuals`, in order."""
+        return cost_residual_names(self.proximity_margins)
+
     def cost_residuals(self, x: Array) -> Array:
         """Residuals a sailor wants at zero, for the learned cost's weighted form (the cost is
-        a learned non-negative weighting of their squares; :mod:`diffgcl.costs.network`): [10]
-        (:data:`COST_RESIDUAL_NAMES`).
+        a learned non-negative weighting of their squares; :mod:`diffgcl.costs.network`): [6 + M]
+        (:attr:`cost_residual_names`).
 
         cross-track error (m); 2 sin(ψ/2) (heading error; its square is 2(1 − cos ψ)); surge
         speed minus cruise and progress along the course (speed made good) minus cruise, sway
-        speed (m/s), yaw rate (rad/s); and how far the hull is inside each of four clearance
-        margins d = 5, 10, 20, 30 m, ``s · softplus((d − clearance)/s)`` with s = 2 m. A
+        speed (m/s), yaw rate (rad/s); and how far the hull is inside each of the M clearance
+        margins d (``proximity_margins``, default 5, 10, 20, 30 m),
+        ``s · softplus((d − clearance)/s)`` with s = 2 m. A
         positive mix of their squares is a convex barrier that rises as the clearance falls
         below the margins the weights pick, and is zero well outside the largest: passing at a
         distance costs nothing, so keeping away from the pole for the whole window (circling in
@@ -327,7 +341,7 @@ class UsvEnv:
         h = x[:IX_RADIUS]
         nu = hull_sim.body_velocity(h)
         s = PROXIMITY_SOFTNESS
-        margins = jnp.asarray(PROXIMITY_MARGINS, x.dtype)
+        margins = jnp.asarray(self.proximity_margins, x.dtype)
         inside = s * jax.nn.softplus((margins - self.clearance(x)) / s)
         course = jnp.stack(
             [
@@ -392,6 +406,7 @@ def make_usv_env(
     weights: HullCostWeights | None = None,
     action_scale=None,
     sensors: PoleSensorModel | None = None,
+    proximity_margins=PROXIMITY_MARGINS,
 ) -> UsvEnv:
     """The USV task env with conditions ``x0: [C, 11]`` (task frame; see
     :func:`diffgcl.data.task_frame.usv_conditions`; default :func:`default_conditions`), hull
@@ -399,12 +414,19 @@ def make_usv_env(
     (m/s; the thrust that holds it is the action offset), horizon T, the policy's
     ``observation`` set (``OBSERVATIONS``) and how it reads ranges (``range_encoding``, of
     ``RANGE_ENCODINGS``: :func:`encode_ranges`), the recorded ``sensors`` behind the observed beams
-    (default: the synthetic Odin-like ones). ``action_scale`` defaults to [max thrust, max
-    nozzle angle]."""
+    (default: the synthetic Odin-like ones), the clearance margins (m) of the learned cost's
+    barrier residuals (:meth:`UsvEnv.cost_residuals`). ``action_scale`` defaults to [max thrust,
+    max nozzle angle]."""
     if observation not in OBSERVATIONS:
         raise ValueError(f"usv: observation {observation!r}; choose one of {OBSERVATIONS}")
     if range_encoding not in RANGE_ENCODINGS:
         raise ValueError(f"usv: range encoding {range_encoding!r}; choose one of {RANGE_ENCODINGS}")
+    margins = tuple(float(d) for d in proximity_margins)
+    if not margins or min(margins) <= 0 or list(margins) != sorted(set(margins)):
+        raise ValueError(
+            f"usv: proximity margins {proximity_margins!r}; give one or more increasing "
+            "clearances in m, each > 0 (e.g. 5, 10, 20, 30)"
+        )
     dtype = jnp.zeros(()).dtype
     x0 = default_conditions(speed=cruise_speed) if x0 is None else x0
     x0 = np.atleast_2d(np.asarray(x0, dtype=float))
@@ -433,5 +455,6 @@ def make_usv_env(
         range_encoding=range_encoding,
         sensors=sensors or PoleSensorModel(),
         weights=weights or HullCostWeights(),
+        proximity_margins=margins,
         horizon=horizon,
     )
