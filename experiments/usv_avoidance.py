@@ -27,6 +27,8 @@ import sys
 import time
 from pathlib import Path
 
+from diffgcl.cli.usv import parse_margins
+
 
 def fast_configs():
     from diffgcl.algorithms.presets import usv as usv_preset
@@ -116,7 +118,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument(
         "--margins",
-        type=lambda text: tuple(float(d) for d in text.split(",")),
+        type=parse_margins,
         default=None,
         help="clearance margins (m) of the learned cost's barriers, e.g. 5,10,20,30 "
         "(UsvTaskConfig.proximity_margins)",

@@ -3,7 +3,8 @@ printing; the pipeline is :func:`diffgcl.algorithms.usv.run_usv`, the pictures
 :func:`diffgcl.viz.usv.save_usv_plots`).
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
-                [--range-encoding saturated|metres] [--train-extra 150] [--seeds 1]
+                [--range-encoding saturated|metres] [--train-extra 150]
+                [--margins 5,10,20,30] [--seeds 1]
                 [--heldout 256] [--fast]
                 [--set a.b=value] [--out runs/usv]
 
@@ -13,9 +14,26 @@ cache) and judges the policies on the generator's true hull; with them, on the i
 
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import json
 from pathlib import Path
+
+
+def parse_margins(text: str) -> tuple[float, ...]:
+    """``"5,10,20,30"`` -> (5.0, 10.0, 20.0, 30.0), for ``--margins`` (``UsvTaskConfig.
+    proximity_margins``); an argparse type, so a bad list is a usage error that names it."""
+    try:
+        margins = tuple(float(d) for d in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"margins {text!r}: give clearances in m separated by commas, e.g. 5,10,20,30"
+        ) from None
+    if min(margins) <= 0 or list(margins) != sorted(set(margins)):
+        raise argparse.ArgumentTypeError(
+            f"margins {text!r}: the clearances must be > 0 and increasing, e.g. 5,10,20,30"
+        )
+    return margins
 
 
 def usv_command(args) -> int:
@@ -56,6 +74,8 @@ def usv_command(args) -> int:
         )
     if args.train_extra is not None:
         task = dataclasses.replace(task, train_extra=args.train_extra)
+    if args.margins is not None:
+        task = dataclasses.replace(task, proximity_margins=args.margins)
     config = UsvRunConfig(
         task=task,
         rgcl=rgcl,
@@ -89,6 +109,12 @@ def register(subparsers) -> None:
         type=int,
         default=None,
         help="steps trained past the demos' window (default 150, with --fast 40)",
+    )
+    p.add_argument(
+        "--margins",
+        type=parse_margins,
+        default=None,
+        help="clearance margins (m) of the learned cost's barriers (default 5,10,20,30)",
     )
     p.add_argument("--methods", default="rgcl,expert,bc", help="of rgcl, expert, bc")
     p.add_argument("--seeds", type=int, default=1)
