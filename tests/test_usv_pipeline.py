@@ -227,3 +227,17 @@ def test_cli_usv_choices_are_the_envs():
     assert set(choices["range_encoding"]) == set(RANGE_ENCODINGS)
     args = build_parser().parse_args(["usv"])
     assert args.range_encoding == U.UsvTaskConfig().range_encoding
+
+
+def test_cli_usv_margins(capsys):
+    """``--margins`` gives the task's barrier clearances; a bad list is a usage error naming it."""
+    from diffgcl.cli import build_parser
+
+    parser = build_parser()
+    assert parser.parse_args(["usv"]).margins is None  # the task's default
+    assert parser.parse_args(["usv", "--margins", "5,12.5,25"]).margins == (5.0, 12.5, 25.0)
+    for bad, why in [("5,x", "separated by commas"), ("20,10", "increasing"), ("0,5", "> 0")]:
+        with pytest.raises(SystemExit):
+            parser.parse_args(["usv", "--margins", bad])
+        err = capsys.readouterr().err
+        assert f"margins '{bad}'" in err and why in err
