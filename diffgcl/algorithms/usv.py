@@ -61,7 +61,11 @@ class UsvTaskConfig:
     see :mod:`diffgcl.algorithms.rgcl`), so that holding the course after the recordings end is
     trained too (trained on the window alone, policies drifted off the line after it, and runs
     diverged on some seeds: docs/usv.md); proximity_margins: the clearances (m) of the learned
-    cost's barrier residuals (:meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`).
+    cost's barrier residuals (:meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`). Their largest
+    bounds where the learned cost can still push the boat away: with a 30 m margin, boats passed
+    at 1.25–1.35× the demos' clearance (about 17 m on the built-in bags), with 20 m at about
+    1.05× (docs/usv.md). For your own bags, let the largest sit a little above the demos' usual
+    clearance.
     """
 
     before: int = 120
