@@ -121,7 +121,7 @@ def main(argv=None) -> int:
         type=parse_margins,
         default=None,
         help="clearance margins (m) of the learned cost's barriers, e.g. 5,10,15,20 "
-        "(UsvTaskConfig.proximity_margins)",
+        "(default: from the demos, UsvTaskConfig.proximity_margins)",
     )
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     parser.add_argument("--json", type=Path, default=None)

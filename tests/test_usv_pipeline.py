@@ -203,6 +203,10 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
     assert run.summary["training_horizon"] == 180 == run.train_env.horizon
     assert run.rgcl_state.gps.controller.K.shape[2] == 180
     assert run.rgcl_state.buffer.X.shape[-2] == 161
+    # The cost's clearance margins come from these demos' own median clearance.
+    margins = U.margins_for_clearance(run.summary["demos"]["min_clearance_median_m"])
+    assert run.summary["proximity_margins"] == list(margins) == list(run.env.proximity_margins)
+    assert run.train_env.proximity_margins == run.env.proximity_margins
     out = tmp_path / "run"
     out.mkdir()
     (out / "notes.txt").write_text("mine")
@@ -227,6 +231,17 @@ def test_cli_usv_choices_are_the_envs():
     assert set(choices["range_encoding"]) == set(RANGE_ENCODINGS)
     args = build_parser().parse_args(["usv"])
     assert args.range_encoding == U.UsvTaskConfig().range_encoding
+
+
+def test_margins_for_clearance_by_hand():
+    """Four margins evenly spaced up to 1.2 × the demos' clearance rounded to 5 m (at least 5)."""
+    assert U.margins_for_clearance(17.2) == (5.0, 10.0, 15.0, 20.0)  # the built-in bags
+    assert U.margins_for_clearance(30.0) == (8.75, 17.5, 26.25, 35.0)  # 36 -> 35
+    assert U.margins_for_clearance(2.0) == (1.25, 2.5, 3.75, 5.0)  # at least one step
+    assert U.margins_for_clearance(40.0, count=2, step=10.0) == (25.0, 50.0)  # 48 -> 50
+    for bad in (0.0, -3.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="median clearance"):
+            U.margins_for_clearance(bad)
 
 
 def test_cli_usv_margins(capsys):

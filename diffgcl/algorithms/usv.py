@@ -40,7 +40,7 @@ import numpy as np
 
 from diffgcl.algorithms.rgcl import DemoBatch
 from diffgcl.data.demos import DemoError, DemoSet
-from diffgcl.envs.usv import PROXIMITY_MARGINS, UsvEnv, encode_ranges, make_usv_env
+from diffgcl.envs.usv import UsvEnv, encode_ranges, make_usv_env
 from diffgcl.sim import hull as hull_sim
 from diffgcl.types import Array, PRNGKey
 
@@ -61,11 +61,11 @@ class UsvTaskConfig:
     see :mod:`diffgcl.algorithms.rgcl`), so that holding the course after the recordings end is
     trained too (trained on the window alone, policies drifted off the line after it, and runs
     diverged on some seeds: docs/usv.md); proximity_margins: the clearances (m) of the learned
-    cost's barrier residuals (:meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`). Their largest
-    bounds where the learned cost can still push the boat away: with a 30 m margin, boats passed
-    at 1.25–1.35× the demos' clearance (about 17 m on the built-in bags), with 20 m at about
-    1.05× (docs/usv.md). For your own bags, let the largest sit a little above the demos' usual
-    clearance.
+    cost's barrier residuals (:meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`), or None to take
+    them from the demos (:func:`margins_for_clearance`: 5, 10, 15, 20 m on the built-in bags).
+    Their largest bounds where the learned cost can still push the boat away: with a 30 m
+    margin, boats passed at 1.25–1.35× the demos' clearance (17 m on the built-in bags), with
+    20 m at about 1.05× (docs/usv.md).
     """
 
     before: int = 120
@@ -76,7 +76,7 @@ class UsvTaskConfig:
     max_conditions: int | None = None
     default_pole_radius: float = DEFAULT_POLE_RADIUS
     train_extra: int = 150
-    proximity_margins: tuple[float, ...] = PROXIMITY_MARGINS
+    proximity_margins: tuple[float, ...] | None = None
 
     @property
     def horizon(self) -> int:
@@ -190,6 +190,26 @@ def cruise_speed_of(windows: DemoSet) -> float:
     return float(np.median(speed[windows.mask > 0]))
 
 
+def margins_for_clearance(clearance_m: float, count: int = 4, step: float = 5.0):
+    """Clearance margins (m) for demos that pass at a median minimum clearance ``clearance_m``:
+    ``count`` evenly spaced up to the largest, 1.2 × the clearance rounded to ``step`` (at least
+    one step). The demos' 17.2 m on the built-in bags gives 5, 10, 15, 20 m, the margins tuned
+    there (docs/usv.md); the rule carries their proportions to demos that pass nearer or wider."""
+    if not clearance_m > 0 or not np.isfinite(clearance_m):
+        raise ValueError(
+            f"usv: the demos' median clearance is {clearance_m} m; margins need a positive one "
+            "(set UsvTaskConfig.proximity_margins / --margins instead)"
+        )
+    largest = step * max(1.0, round(1.2 * clearance_m / step))
+    return tuple(largest * k / count for k in range(1, count + 1))
+
+
+def demo_clearance_median(env: UsvEnv, windows: DemoSet, radii: np.ndarray) -> float:
+    """The demos' median minimum clearance (m) to their poles, in ``env``'s hull outline."""
+    X = window_states(windows, radii)
+    return float(np.median(trajectory_metrics(env, X)["min_clearance"]))
+
+
 def make_task_env(
     windows: DemoSet,
     radii: np.ndarray,
@@ -199,9 +219,15 @@ def make_task_env(
     cruise_speed: float | None = None,
     horizon: int | None = None,
 ) -> UsvEnv:
-    """The USV env on hull ``params`` with one condition per window (its first state and pole)."""
+    """The USV env on hull ``params`` with one condition per window (its first state and pole);
+    the cost's clearance margins are the task's, or taken from the windows
+    (:func:`margins_for_clearance`)."""
     x0 = np.concatenate([windows.X[:, 0, : hull_sim.DX], radii[:, None]], axis=1)
     speed = cruise_speed_of(windows) if cruise_speed is None else cruise_speed
+    margins = config.proximity_margins
+    if margins is None:
+        probe = make_usv_env(x0, params=params, cruise_speed=speed, horizon=1)
+        margins = margins_for_clearance(demo_clearance_median(probe, windows, radii))
     return make_usv_env(
         x0,
         params=params,
@@ -209,7 +235,7 @@ def make_task_env(
         horizon=config.horizon if horizon is None else horizon,
         observation=config.observation,
         range_encoding=config.range_encoding,
-        proximity_margins=config.proximity_margins,
+        proximity_margins=margins,
     )
 
 
@@ -230,14 +256,19 @@ def usv_observations(env: UsvEnv, X: np.ndarray, O_hull: np.ndarray) -> np.ndarr
     return np.concatenate([ranges, heading, nu, cross], axis=-1)
 
 
+def window_states(windows: DemoSet, radii: np.ndarray) -> np.ndarray:
+    """The windows' hull states with each pole's radius appended: [N, T+1, 11]."""
+    N, T1, _ = windows.X.shape
+    return np.concatenate(
+        [windows.X[..., : hull_sim.DX], np.broadcast_to(radii[:, None, None], (N, T1, 1))], -1
+    )
+
+
 def usv_demo_set(env: UsvEnv, windows: DemoSet, radii: np.ndarray) -> DemoSet:
     """The windows in ``env``'s layout: states with the pole radius [N, T+1, 11], normalised
     actions [N, T, 2], the policy's observations [N, T+1, dO] from the recorded ranges, and each
     episode its own condition (``condition = i``)."""
-    N, T1, _ = windows.X.shape
-    X = np.concatenate(
-        [windows.X[..., : hull_sim.DX], np.broadcast_to(radii[:, None, None], (N, T1, 1))], -1
-    )
+    X = window_states(windows, radii)
     offset, scale = np.asarray(env.action_offset), np.asarray(env.action_scale)
     U = (windows.U - offset) / scale
     O = usv_observations(env, X, windows.O)
@@ -574,6 +605,7 @@ def run_usv(
             "port_share",
         )
     }
+    summary["proximity_margins"] = list(env.proximity_margins)
     summary["evaluation_horizon"] = task.horizon + config.eval_extra
     summary["training_horizon"] = task.training_horizon
     run = UsvRun(summary, env, env_true, task_demos, x0_heldout, {}, {}, train_env=train_env)

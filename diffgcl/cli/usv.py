@@ -114,7 +114,8 @@ def register(subparsers) -> None:
         "--margins",
         type=parse_margins,
         default=None,
-        help="clearance margins (m) of the learned cost's barriers (default 5,10,15,20)",
+        help="clearance margins (m) of the learned cost's barriers (default: from the demos' "
+        "median clearance, 5,10,15,20 on the built-in bags)",
     )
     p.add_argument("--methods", default="rgcl,expert,bc", help="of rgcl, expert, bc")
     p.add_argument("--seeds", type=int, default=1)
