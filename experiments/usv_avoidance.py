@@ -120,7 +120,7 @@ def main(argv=None) -> int:
         "--margins",
         type=parse_margins,
         default=None,
-        help="clearance margins (m) of the learned cost's barriers, e.g. 5,10,15,20 "
+        help="clearance margins (m) of the learned cost's barriers, e.g. 5,10,20,30 "
         "(default: from the demos, UsvTaskConfig.proximity_margins)",
     )
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")

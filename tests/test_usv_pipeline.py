@@ -234,11 +234,15 @@ def test_cli_usv_choices_are_the_envs():
 
 
 def test_margins_for_clearance_by_hand():
-    """Four margins evenly spaced up to 1.2 × the demos' clearance rounded to 5 m (at least 5)."""
-    assert U.margins_for_clearance(17.2) == (5.0, 10.0, 15.0, 20.0)  # the built-in bags
-    assert U.margins_for_clearance(30.0) == (8.75, 17.5, 26.25, 35.0)  # 36 -> 35
-    assert U.margins_for_clearance(2.0) == (1.25, 2.5, 3.75, 5.0)  # at least one step
-    assert U.margins_for_clearance(40.0, count=2, step=10.0) == (25.0, 50.0)  # 48 -> 50
+    """The tuned margins scaled by the demos' clearance over the tuned one, rounded to 1 m unless
+    that merges two."""
+    assert U.TUNED_CLEARANCE_M == 17.25
+    for built_in in (17.248, 17.423):  # set 2, sets 1 + 2
+        assert U.margins_for_clearance(built_in) == (5.0, 10.0, 20.0, 30.0)
+    assert U.margins_for_clearance(30.0) == (9.0, 17.0, 35.0, 52.0)  # 8.7, 17.4, 34.8, 52.2
+    assert U.margins_for_clearance(34.5, (5.0, 15.0)) == (10.0, 30.0)
+    near = np.asarray(U.margins_for_clearance(2.0))  # 0.58, 1.16, 2.32, 3.48: 1, 1 merge
+    np.testing.assert_allclose(near, np.asarray([5.0, 10.0, 20.0, 30.0]) * 2.0 / 17.25)
     for bad in (0.0, -3.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="median clearance"):
             U.margins_for_clearance(bad)

@@ -160,7 +160,7 @@ def usv() -> RGCLConfig:
     """The USV task (:mod:`diffgcl.algorithms.usv`): rGCL v2 on the hull with normalised actions,
     a cost of learned non-negative weights on a sailor's squared residuals (cross-track and
     heading error, surge and progress speed errors, sway, yaw rate, depth inside the task's
-    clearance margins, by default from the demos (5, 10, 15, 20 m on the built-in bags;
+    clearance margins, by default from the demos (5, 10, 20, 30 m on the built-in bags;
     :func:`diffgcl.algorithms.usv.margins_for_clearance`); ``network.form="weighted"``,
     :meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`) plus the actuators' limit barrier, and a
     global MDGPS policy on the boat's observations (noisy sensors in its training samples).
@@ -181,9 +181,6 @@ def usv() -> RGCLConfig:
     * 14 iterations, the last 3 on a frozen cost: at 30 the controllers still blew up late in
       some runs (true cost 10⁴–10¹⁰ from iteration 15 or 28 on) and the policy inherited it;
       up to iteration 14 the true cost fell steadily in every run seen;
-    * GCL's ``n_steps`` 60 per update (with the task's margins of 5–20 m; 40 before): at 40 the
-      weights had not settled (tuning split, seeds 0–3: 3 of 256 held-out episodes collided,
-      clearance 1.08× the demos'); at 60 none collided (clearance 1.05×);
     * GCL's ``learning_rate`` 3 × 10⁻³: Adam moves each log weight by about its learning rate
       per step, and every weight's gradient keeps its sign, so the learning rate bounds how far
       the weights get; at 10⁻³ the boat passed at 1.41× the demos' clearance, at 3 × 10⁻³ at
@@ -224,7 +221,7 @@ def usv() -> RGCLConfig:
             features="env",
         ),
         gcl=GCLConfig(
-            n_steps=60,
+            n_steps=40,
             pretrain_steps=300,
             demo_batch=1,
             sample_batch=10,

@@ -40,7 +40,7 @@ import numpy as np
 
 from diffgcl.algorithms.rgcl import DemoBatch
 from diffgcl.data.demos import DemoError, DemoSet
-from diffgcl.envs.usv import UsvEnv, encode_ranges, make_usv_env
+from diffgcl.envs.usv import PROXIMITY_MARGINS, UsvEnv, encode_ranges, make_usv_env
 from diffgcl.sim import hull as hull_sim
 from diffgcl.types import Array, PRNGKey
 
@@ -62,10 +62,11 @@ class UsvTaskConfig:
     trained too (trained on the window alone, policies drifted off the line after it, and runs
     diverged on some seeds: docs/usv.md); proximity_margins: the clearances (m) of the learned
     cost's barrier residuals (:meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`), or None to take
-    them from the demos (:func:`margins_for_clearance`: 5, 10, 15, 20 m on the built-in bags).
+    them from the demos (:func:`margins_for_clearance`: 5, 10, 20, 30 m on the built-in bags).
     Their largest bounds where the learned cost can still push the boat away: with a 30 m
     margin, boats passed at 1.25–1.35× the demos' clearance (17 m on the built-in bags), with
-    20 m at about 1.05× (docs/usv.md).
+    20 m at about 1.0×, but one training seed in ten passed too close and hit the pole in 2 % of
+    its episodes (docs/usv.md).
     """
 
     before: int = 120
@@ -190,18 +191,25 @@ def cruise_speed_of(windows: DemoSet) -> float:
     return float(np.median(speed[windows.mask > 0]))
 
 
-def margins_for_clearance(clearance_m: float, count: int = 4, step: float = 5.0):
+TUNED_CLEARANCE_M = 17.25  # m, the built-in bags' demos' median clearance (set 2: 17.25)
+
+
+def margins_for_clearance(clearance_m: float, margins=PROXIMITY_MARGINS) -> tuple[float, ...]:
     """Clearance margins (m) for demos that pass at a median minimum clearance ``clearance_m``:
-    ``count`` evenly spaced up to the largest, 1.2 × the clearance rounded to ``step`` (at least
-    one step). The demos' 17.2 m on the built-in bags gives 5, 10, 15, 20 m, the margins tuned
-    there (docs/usv.md); the rule carries their proportions to demos that pass nearer or wider."""
+    ``margins``, tuned for the built-in demos' :data:`TUNED_CLEARANCE_M`, scaled by the ratio and
+    rounded to 1 m (unrounded where rounding would merge two or make one 0). The built-in bags
+    (17.25 m on set 2, 17.4 m on sets 1 + 2) keep 5, 10, 20, 30 m; demos that pass at 30 m get
+    9, 17, 35, 52 m."""
     if not clearance_m > 0 or not np.isfinite(clearance_m):
         raise ValueError(
             f"usv: the demos' median clearance is {clearance_m} m; margins need a positive one "
             "(set UsvTaskConfig.proximity_margins / --margins instead)"
         )
-    largest = step * max(1.0, round(1.2 * clearance_m / step))
-    return tuple(largest * k / count for k in range(1, count + 1))
+    scaled = np.asarray(margins, float) * (clearance_m / TUNED_CLEARANCE_M)
+    rounded = np.round(scaled)
+    if rounded[0] <= 0 or np.any(np.diff(rounded) <= 0):
+        rounded = scaled
+    return tuple(float(m) for m in rounded)
 
 
 def demo_clearance_median(env: UsvEnv, windows: DemoSet, radii: np.ndarray) -> float:

@@ -4,7 +4,7 @@ printing; the pipeline is :func:`diffgcl.algorithms.usv.run_usv`, the pictures
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
                 [--range-encoding saturated|metres] [--train-extra 150]
-                [--margins 5,10,15,20] [--seeds 1]
+                [--margins 5,10,20,30] [--seeds 1]
                 [--heldout 256] [--fast]
                 [--set a.b=value] [--out runs/usv]
 
@@ -21,17 +21,17 @@ from pathlib import Path
 
 
 def parse_margins(text: str) -> tuple[float, ...]:
-    """``"5,10,15,20"`` -> (5.0, 10.0, 15.0, 20.0), for ``--margins`` (``UsvTaskConfig.
+    """``"5,10,20,30"`` -> (5.0, 10.0, 20.0, 30.0), for ``--margins`` (``UsvTaskConfig.
     proximity_margins``); an argparse type, so a bad list is a usage error that names it."""
     try:
         margins = tuple(float(d) for d in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"margins {text!r}: give clearances in m separated by commas, e.g. 5,10,15,20"
+            f"margins {text!r}: give clearances in m separated by commas, e.g. 5,10,20,30"
         ) from None
     if min(margins) <= 0 or list(margins) != sorted(set(margins)):
         raise argparse.ArgumentTypeError(
-            f"margins {text!r}: the clearances must be > 0 and increasing, e.g. 5,10,15,20"
+            f"margins {text!r}: the clearances must be > 0 and increasing, e.g. 5,10,20,30"
         )
     return margins
 
@@ -115,7 +115,7 @@ def register(subparsers) -> None:
         type=parse_margins,
         default=None,
         help="clearance margins (m) of the learned cost's barriers (default: from the demos' "
-        "median clearance, 5,10,15,20 on the built-in bags)",
+        "median clearance, 5,10,20,30 on the built-in bags)",
     )
     p.add_argument("--methods", default="rgcl,expert,bc", help="of rgcl, expert, bc")
     p.add_argument("--seeds", type=int, default=1)
