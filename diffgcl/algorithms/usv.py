@@ -218,6 +218,16 @@ def demo_clearance_median(env: UsvEnv, windows: DemoSet, radii: np.ndarray) -> f
     return float(np.median(trajectory_metrics(env, X)["min_clearance"]))
 
 
+def task_margins(windows: DemoSet, radii: np.ndarray, params, config: UsvTaskConfig):
+    """The learned cost's clearance margins (m) for ``config``: its own, or taken from the
+    windows' median clearance (:func:`margins_for_clearance`)."""
+    if config.proximity_margins is not None:
+        return config.proximity_margins
+    x0 = np.concatenate([windows.X[:, 0, : hull_sim.DX], radii[:, None]], axis=1)
+    probe = make_usv_env(x0, params=params, horizon=1)
+    return margins_for_clearance(demo_clearance_median(probe, windows, radii))
+
+
 def make_task_env(
     windows: DemoSet,
     radii: np.ndarray,
@@ -232,10 +242,6 @@ def make_task_env(
     (:func:`margins_for_clearance`)."""
     x0 = np.concatenate([windows.X[:, 0, : hull_sim.DX], radii[:, None]], axis=1)
     speed = cruise_speed_of(windows) if cruise_speed is None else cruise_speed
-    margins = config.proximity_margins
-    if margins is None:
-        probe = make_usv_env(x0, params=params, cruise_speed=speed, horizon=1)
-        margins = margins_for_clearance(demo_clearance_median(probe, windows, radii))
     return make_usv_env(
         x0,
         params=params,
@@ -243,7 +249,7 @@ def make_task_env(
         horizon=config.horizon if horizon is None else horizon,
         observation=config.observation,
         range_encoding=config.range_encoding,
-        proximity_margins=margins,
+        proximity_margins=task_margins(windows, radii, params, config),
     )
 
 
@@ -590,6 +596,8 @@ def run_usv(
         params = hull_sim.default_params()
     truth = true_params if true_params is not None else params
 
+    # The margins once, for every env of the run (each would measure the demos' clearance again).
+    task = dataclasses.replace(task, proximity_margins=task_margins(windows, radii, params, task))
     env = make_task_env(windows, radii, params, task)
     train_env = make_task_env(windows, radii, params, task, horizon=task.training_horizon)
     task_demos = usv_demo_set(env, windows, radii)
