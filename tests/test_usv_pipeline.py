@@ -69,6 +69,7 @@ def test_scores_of_hand_built_tracks():
     assert seeds["collision_rate"] == [1.0, 0.0]
     assert seeds["return_to_course_rate"][1] == 1.0
     assert seeds["clearance_ratio_vs_demos"][0] < 0 < seeds["clearance_ratio_vs_demos"][1] == 1.0
+    assert seeds["port_share"][1] == same["port_share"] in (0.0, 1.0)  # both demos on one side
     # The path distance: a track 3 m to the side of a straight demo is 3 m from it.
     d = U.path_distance_to_demos(
         straight_track(env, 3.0, T)[None], straight_track(env, 0.0, T)[None]

@@ -418,9 +418,9 @@ def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
 
 
 def per_seed_figures(env: UsvEnv, tracks, demo_clearance_m: float) -> dict:
-    """Collision rate, on course at the end and clearance ratio (over the demos' median minimum
-    clearance ``demo_clearance_m``) of each training seed's tracks ``[S, B, T+1, 11]``, each a
-    list over the seeds."""
+    """Collision rate, on course at the end, clearance ratio (over the demos' median minimum
+    clearance ``demo_clearance_m``) and share of port passes of each training seed's tracks
+    ``[S, B, T+1, 11]``, each a list over the seeds."""
     tracks = np.asarray(tracks)
     S = tracks.shape[0]
     m = trajectory_metrics(env, tracks.reshape(-1, *tracks.shape[2:]))  # one call, all seeds
@@ -431,6 +431,7 @@ def per_seed_figures(env: UsvEnv, tracks, demo_clearance_m: float) -> dict:
         "clearance_ratio_vs_demos": (
             np.median(per["min_clearance"], axis=1) / demo_clearance_m
         ).tolist(),
+        "port_share": (per["side"] > 0).mean(axis=1).tolist(),
     }
 
 
@@ -657,6 +658,7 @@ def run_usv(
             )
         )
         ctrl = score_rollouts(env, Xc.reshape(-1, *Xc.shape[2:]), task_demos.X)
+        ctrl["per_seed"] = per_seed_figures(env, Xc, ctrl["demo_min_clearance_median_m"])
         summary["rgcl"] = {
             "seconds": seconds,
             "controllers_on_demo_starts": ctrl,
