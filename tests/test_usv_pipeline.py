@@ -70,6 +70,14 @@ def test_scores_of_hand_built_tracks():
     assert seeds["return_to_course_rate"][1] == 1.0
     assert seeds["clearance_ratio_vs_demos"][0] < 0 < seeds["clearance_ratio_vs_demos"][1] == 1.0
     assert seeds["port_share"][1] == same["port_share"] in (0.0, 1.0)  # both demos on one side
+    assert 0.0 <= seeds["straight_side_share"][1] == same["straight_side_share"] <= 1.0
+    # The straight-on side: offset 1 m to port, heading 0 -> port; heading 2° to starboard over
+    # the pole's 100 m -> 2.5 m to starboard.
+    x0 = np.zeros((2, 2, hull_sim.DX + 1))
+    x0[:, 0, hull_sim.IX_PY] = 1.0
+    x0[:, 0, hull_sim.IX_OBS_X] = 100.0
+    x0[1, 0, hull_sim.IX_PSI] = -np.deg2rad(2.0)
+    np.testing.assert_array_equal(U.straight_side(x0), [1.0, -1.0])
     # The path distance: a track 3 m to the side of a straight demo is 3 m from it.
     d = U.path_distance_to_demos(
         straight_track(env, 3.0, T)[None], straight_track(env, 0.0, T)[None]

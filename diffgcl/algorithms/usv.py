@@ -381,6 +381,16 @@ def trajectory_metrics(env: UsvEnv, X) -> dict[str, np.ndarray]:
     return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(env.metrics))(jnp.asarray(X)).items()}
 
 
+def straight_side(X) -> np.ndarray:
+    """The side (+1 port, −1 starboard, as :meth:`UsvEnv.metrics`' ``side``) on which each rollout
+    ``X: [B, T+1, 11]`` would pass its pole if it sailed straight on from its start: the sign of
+    the lateral offset from the pole at the pole's distance along the start heading."""
+    x0 = np.asarray(X)[:, 0]
+    ahead = x0[:, hull_sim.IX_OBS_X] - x0[:, hull_sim.IX_PX]
+    lateral = x0[:, hull_sim.IX_PY] + ahead * np.tan(x0[:, hull_sim.IX_PSI])
+    return np.sign(lateral - x0[:, hull_sim.IX_OBS_Y])
+
+
 def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
     """The USV figures of rollouts ``X: [B, T'+1, 11]`` against the demos ``demo_X: [N, T+1, 11]``
     (T' ≥ T: the evaluation may run past the demos' window).
@@ -390,7 +400,9 @@ def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
     line within the demos' window (:meth:`UsvEnv.returned_to_course` on the first T+1 states, the
     figure the demos have too); collision rate; the median minimum clearance and its ratio to the
     demos' median; the median path distance to the nearest demo (first T+1 states); the share of
-    port passes beside the demos'."""
+    port passes beside the demos'; ``straight_side_share``: the share that pass on the side they
+    would have passed on sailing straight on (:func:`straight_side`; about 0.5 for a side picked
+    at random), beside the demos'."""
     X = np.asarray(X)
     T1 = demo_X.shape[1]
     m = trajectory_metrics(env, X)
@@ -414,16 +426,20 @@ def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
         ),
         "port_share": float(np.mean(m["side"] > 0)),
         "demo_port_share": float(np.mean(d["side"] > 0)),
+        "straight_side_share": float(np.mean(m["side"] == straight_side(X))),
+        "demo_straight_side_share": float(np.mean(d["side"] == straight_side(demo_X))),
     }
 
 
 def per_seed_figures(env: UsvEnv, tracks, demo_clearance_m: float) -> dict:
     """Collision rate, on course at the end, clearance ratio (over the demos' median minimum
-    clearance ``demo_clearance_m``) and share of port passes of each training seed's tracks
-    ``[S, B, T+1, 11]``, each a list over the seeds."""
+    clearance ``demo_clearance_m``), share of port passes and of passes on the straight-on side
+    (:func:`straight_side`) of each training seed's tracks ``[S, B, T+1, 11]``, each a list over
+    the seeds."""
     tracks = np.asarray(tracks)
     S = tracks.shape[0]
-    m = trajectory_metrics(env, tracks.reshape(-1, *tracks.shape[2:]))  # one call, all seeds
+    flat = tracks.reshape(-1, *tracks.shape[2:])
+    m = trajectory_metrics(env, flat)  # one call, all seeds
     per = {k: v.reshape(S, -1) for k, v in m.items()}
     return {
         "collision_rate": per["collision"].mean(axis=1).tolist(),
@@ -432,6 +448,9 @@ def per_seed_figures(env: UsvEnv, tracks, demo_clearance_m: float) -> dict:
             np.median(per["min_clearance"], axis=1) / demo_clearance_m
         ).tolist(),
         "port_share": (per["side"] > 0).mean(axis=1).tolist(),
+        "straight_side_share": (per["side"] == straight_side(flat).reshape(S, -1))
+        .mean(axis=1)
+        .tolist(),
     }
 
 
