@@ -78,6 +78,9 @@ def test_scores_of_hand_built_tracks():
     x0[:, 0, hull_sim.IX_OBS_X] = 100.0
     x0[1, 0, hull_sim.IX_PSI] = -np.deg2rad(2.0)
     np.testing.assert_array_equal(U.straight_side(x0), [1.0, -1.0])
+    # A warning for a seed whose controllers hit the pole on their own starts, none otherwise.
+    warn = U.controller_warnings([7, 8], seeds, 2)
+    assert [seed for seed, _ in warn] == [7] and "hit the pole on 2 of their 2" in warn[0][1]
     # The path distance: a track 3 m to the side of a straight demo is 3 m from it.
     d = U.path_distance_to_demos(
         straight_track(env, 3.0, T)[None], straight_track(env, 0.0, T)[None]
