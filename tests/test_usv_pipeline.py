@@ -81,6 +81,16 @@ def test_scores_of_hand_built_tracks():
     # A warning for a seed whose controllers hit the pole on their own starts, none otherwise.
     warn = U.controller_warnings([7, 8], seeds, 2)
     assert [seed for seed, _ in warn] == [7] and "hit the pole on 2 of their 2" in warn[0][1]
+    # ... or are off course at the end on more than a tenth of them (a diverged run).
+    figures = {
+        "collision_rate": [0.0, 0.1, 0.0, 0.0],
+        "return_to_course_rate": [1.0, 1.0, 0.8, 0.95],
+        "clearance_ratio_vs_demos": [1.3, 0.7, 2.9, 1.2],
+    }
+    warn = dict(U.controller_warnings([20, 21, 22, 23], figures, 20))
+    assert sorted(warn) == [21, 22]
+    assert "hit the pole on 2 of their 20" in warn[21] and "back on course" not in warn[21]
+    assert "back on course at the end on only 16 of 20" in warn[22] and "hit" not in warn[22]
     # The path distance: a track 3 m to the side of a straight demo is 3 m from it.
     d = U.path_distance_to_demos(
         straight_track(env, 3.0, T)[None], straight_track(env, 0.0, T)[None]

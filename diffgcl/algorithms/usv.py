@@ -454,24 +454,40 @@ def per_seed_figures(env: UsvEnv, tracks, demo_clearance_m: float) -> dict:
     }
 
 
+CONTROLLERS_ON_COURSE_WARN = 0.9  # warn below this share of controllers on course at the end
+
+
 def controller_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[int, str]]:
-    """``(seed, text)`` for each training seed whose local controllers hit the pole on some of
-    their own training starts (``per_seed``: :func:`per_seed_figures` of the controllers on the
-    ``conditions`` demo starts). Such a run is a warning sign, not a verdict: the runs whose
-    policy passed at 0.55–0.75× the demos' clearance and hit the pole all had it, and so did
-    some whose policy was fine (docs/usv.md)."""
+    """``(seed, text)`` for each training seed whose local controllers, on their own training
+    starts (``per_seed``: :func:`per_seed_figures` of the controllers on the ``conditions`` demo
+    starts), hit the pole on some, or are back on course at the end on fewer than
+    :data:`CONTROLLERS_ON_COURSE_WARN` of them. Warning signs, not verdicts (docs/usv.md):
+    every run whose policy passed at 0.55–0.75× the demos' clearance and hit the pole had hits,
+    and so did some whose policy was fine; the one diverged run of seeds 8–23 (seed 20; its
+    policy circled, 0 % on course) had its controllers on course on none of their starts."""
     out = []
-    for seed, rate, ratio in zip(
-        seeds, per_seed["collision_rate"], per_seed["clearance_ratio_vs_demos"], strict=True
-    ):
-        hits = round(rate * conditions)
+    figures = zip(
+        seeds,
+        per_seed["collision_rate"],
+        per_seed["return_to_course_rate"],
+        per_seed["clearance_ratio_vs_demos"],
+        strict=True,
+    )
+    for seed, hit_rate, on_course, ratio in figures:
+        hits = round(hit_rate * conditions)
+        signs = []
         if hits:
+            signs.append(f"hit the pole on {hits} of their {conditions} training starts")
+        if on_course < CONTROLLERS_ON_COURSE_WARN:
+            back = round(on_course * conditions)
+            signs.append(f"are back on course at the end on only {back} of {conditions}")
+        if signs:
             out.append(
                 (
                     int(seed),
-                    f"its local controllers hit the pole on {hits} of their {conditions} "
-                    f"training starts (clearance {ratio:.2f}× the demos'); its policy may pass "
-                    "too close: compare its per-seed figures, or train it again with another seed",
+                    f"its local controllers {' and '.join(signs)} (clearance {ratio:.2f}× the "
+                    "demos'); its policy may pass too close or fail to return (a diverged run "
+                    "circles): compare its per-seed figures, or train it again with another seed",
                 )
             )
     return out
