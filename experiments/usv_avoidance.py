@@ -46,7 +46,8 @@ def fast_configs():
         ],
     )
     task = UsvTaskConfig(before=100, after=140, train_extra=40)
-    main = UsvRunConfig(task=task, rgcl=rgcl, heldout=32, expert_iterations=4)
+    # No retraining of warned seeds: a smoke test's 6 iterations leave controllers off course.
+    main = UsvRunConfig(task=task, rgcl=rgcl, heldout=32, expert_iterations=4, retrain_warned=0)
     radar = dataclasses.replace(
         main,
         task=dataclasses.replace(task, sets=("1", "2"), observation="radar"),
@@ -123,6 +124,13 @@ def main(argv=None) -> int:
         help="clearance margins (m) of the learned cost's barriers, e.g. 5,10,20,30 "
         "(default: from the demos, UsvTaskConfig.proximity_margins)",
     )
+    parser.add_argument(
+        "--retrain",
+        type=int,
+        default=None,
+        help="train a seed again with a new key, at most N more times, while its local "
+        "controllers warn (UsvRunConfig.retrain_warned; default 1, with --fast 0)",
+    )
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None, help="plots (a new or own folder)")
@@ -163,6 +171,10 @@ def main(argv=None) -> int:
         dataclasses.replace(c, task=dataclasses.replace(c.task, **task_changes))
         for c in (main_cfg, radar_cfg)
     )
+    if args.retrain is not None:
+        main_cfg, radar_cfg = (
+            dataclasses.replace(c, retrain_warned=args.retrain) for c in (main_cfg, radar_cfg)
+        )
     if args.set:
         rgcl = with_overrides(main_cfg.rgcl or usv_preset(), args.set)
         main_cfg = dataclasses.replace(main_cfg, rgcl=rgcl)

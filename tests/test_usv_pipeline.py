@@ -98,6 +98,57 @@ def test_scores_of_hand_built_tracks():
     np.testing.assert_allclose(d, [3.0], rtol=1e-12)
 
 
+def test_warned_seeds_are_trained_again():
+    """A seed whose controllers warn on their training starts is trained again with a new key,
+    at most ``retrain`` times, until an attempt does not warn; the first such attempt is kept,
+    else the one with the fewest hits (then the most back on course). Others train once."""
+    outcomes = {  # (seed, attempt) -> controllers' (hit rate, back on course)
+        (0, 0): (0.0, 1.0),  # no warning: trained once
+        (1, 0): (0.1, 1.0),  # hits, then none: attempt 1 kept
+        (1, 1): (0.0, 0.95),
+        (2, 0): (0.1, 1.0),  # warns every time: the fewest hits kept (attempt 2)
+        (2, 1): (0.2, 1.0),
+        (2, 2): (0.0, 0.5),
+    }
+    by_key = {tuple(np.asarray(U.training_key(s, a)).tolist()): (s, a) for s, a in outcomes}
+    calls = []
+
+    def train(keys):
+        ids = [by_key[tuple(k)] for k in np.asarray(keys).tolist()]
+        calls.append(ids)
+        out = {"id": np.asarray(ids), "w": np.ones((len(ids), 2, 3))}
+        return out, np.asarray([outcomes[i] for i in ids])
+
+    def figures(Xc):
+        return {
+            "collision_rate": Xc[:, 0].tolist(),
+            "return_to_course_rate": Xc[:, 1].tolist(),
+            "clearance_ratio_vs_demos": [1.0] * len(Xc),
+        }
+
+    said = []
+    out, Xc, per, _, record = U.train_retrying_warned(
+        train, figures, [0, 1, 2], 10, retrain=2, say=said.append
+    )
+    assert calls == [[(0, 0), (1, 0), (2, 0)], [(1, 1), (2, 1)], [(2, 2)]]
+    np.testing.assert_array_equal(out["id"], [[0, 0], [1, 1], [2, 2]])
+    np.testing.assert_array_equal(Xc, [outcomes[0, 0], outcomes[1, 1], outcomes[2, 2]])
+    assert per["collision_rate"] == [0.0, 0.0, 0.0]
+    assert per["return_to_course_rate"] == [1.0, 0.95, 0.5]
+    assert [record[s]["kept"] for s in (0, 1, 2)] == [0, 1, 2]
+    assert [len(record[s]["attempts"]) for s in (0, 1, 2)] == [1, 2, 3]
+    assert record[1]["attempts"][0]["warning"] and not record[1]["attempts"][1]["warning"]
+    assert record[2]["attempts"][1]["collision_rate"] == 0.2
+    assert any("seed 2 (attempt 1)" in text for text in said)
+    # The first attempt's key is PRNGKey(seed) (runs before retraining reproduce); retrain=0
+    # only warns.
+    np.testing.assert_array_equal(U.training_key(5), jax.random.PRNGKey(5))
+    calls.clear()
+    out, *_, record = U.train_retrying_warned(train, figures, [0, 1], 10, retrain=0)
+    assert calls == [[(0, 0), (1, 0)]] and record[1]["kept"] == 0
+    assert record[1]["attempts"][0]["warning"]
+
+
 @pytest.fixture(scope="module")
 def tiny_bags(tmp_path_factory):
     """Two set-2 episodes (LiDAR) and one set-1 episode as ROS1 bags, ingested."""
@@ -221,6 +272,14 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
         T_eval = config.task.horizon + config.eval_extra  # judged past the window
         assert run.tracks[name].shape == (1, 4, T_eval + 1, run.env.dX)
     assert run.summary["hull_identification"]["max_relative_error"] < 0.5
+    # One training seed, trained again at most once (retrain_warned=1) if its controllers warned;
+    # the summary's warning is the kept attempt's.
+    record = run.summary["rgcl"]["attempts"]["0"]
+    assert len(record["attempts"]) in (1, 2) and record["kept"] < len(record["attempts"])
+    kept = record["attempts"][record["kept"]]
+    assert run.summary["rgcl"]["warnings"].get("0") == kept["warning"]
+    per_seed = run.summary["rgcl"]["controllers_on_demo_starts"]["per_seed"]
+    assert per_seed["collision_rate"] == [kept["collision_rate"]]
     # Trained past the window: controllers [S, C, T, ...] over 180 steps, GCL's buffer over 160.
     assert run.summary["training_horizon"] == 180 == run.train_env.horizon
     assert run.rgcl_state.gps.controller.K.shape[2] == 180

@@ -493,6 +493,92 @@ def controller_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[in
     return out
 
 
+def training_key(seed: int, attempt: int = 0) -> Array:
+    """The key of training seed ``seed``'s ``attempt``-th training: ``PRNGKey(seed)`` the first
+    time (attempt 0), a key folded from it for each retraining (:func:`train_retrying_warned`)."""
+    key = jax.random.PRNGKey(int(seed))
+    return key if attempt == 0 else jax.random.fold_in(key, int(attempt))
+
+
+def seed_name(seed: int, attempt: int) -> str:
+    """How a training attempt is named in messages: ``3`` for the first, ``3 (attempt 1)``."""
+    return str(seed) if attempt == 0 else f"{seed} (attempt {attempt})"
+
+
+def _standing(per_seed: dict, i: int, warned: bool) -> tuple:
+    """Sort key of seed ``i``'s training attempt, lower is better: no warning, then fewer
+    controller hits, then more controllers back on course."""
+    return (warned, per_seed["collision_rate"][i], -per_seed["return_to_course_rate"][i])
+
+
+def train_retrying_warned(train, figures, seeds, conditions: int, retrain: int, say=None):
+    """Train every seed, then train again, each time with a new key (:func:`training_key`), each
+    seed whose local controllers warn (:func:`controller_warnings`), at most ``retrain`` more
+    times; keep per seed its first attempt without a warning, else its best one (fewer controller
+    hits, then more back on course). Only the training starts decide: nothing held out is seen.
+
+    ``train(keys [k, 2]) -> (out, Xc)``: a pytree of host arrays and the controllers' tracks on
+    their ``conditions`` training starts, both with a leading axis over the keys;
+    ``figures(Xc) -> per_seed`` (:func:`per_seed_figures`). Returns ``out`` and ``Xc`` of the kept
+    attempts, their ``per_seed``, the seconds spent in ``train`` and a record per seed:
+    ``{"kept": attempt, "attempts": [{"warning": text or None, "collision_rate",
+    "return_to_course_rate", "clearance_ratio_vs_demos"}, ...]}``; ``say(text)`` hears each
+    warning and each retraining as it happens."""
+    import time
+
+    say = say or (lambda text: None)
+
+    seeds = [int(s) for s in seeds]
+    keys = jnp.stack([training_key(s) for s in seeds])
+    t0 = time.perf_counter()
+    out, Xc = train(keys)
+    seconds = time.perf_counter() - t0
+    out = jax.tree.map(np.array, out)  # writable copies: retrained seeds are put in place
+    Xc = np.array(Xc)
+    per_seed = figures(Xc)
+    warned = dict(controller_warnings(seeds, per_seed, conditions))
+    for seed, text in warned.items():
+        say(f"warning: training seed {seed}: {text}")
+    names = ("collision_rate", "return_to_course_rate", "clearance_ratio_vs_demos")
+
+    def attempt_record(per: dict, i: int, text) -> dict:
+        return {"warning": text, **{k: float(per[k][i]) for k in names}}
+
+    record = {
+        s: {"kept": 0, "attempts": [attempt_record(per_seed, i, warned.get(s))]}
+        for i, s in enumerate(seeds)
+    }
+    for attempt in range(1, retrain + 1):
+        again = [
+            i for i, s in enumerate(seeds) if record[s]["attempts"][record[s]["kept"]]["warning"]
+        ]
+        if not again:
+            break
+        say(f"training seeds {[seeds[i] for i in again]} again with new keys (attempt {attempt})")
+        t0 = time.perf_counter()
+        new_out, new_Xc = train(jnp.stack([training_key(seeds[i], attempt) for i in again]))
+        seconds += time.perf_counter() - t0
+        new_per = figures(np.asarray(new_Xc))
+        new_warned = dict(controller_warnings([seeds[i] for i in again], new_per, conditions))
+        for j, i in enumerate(again):
+            s = seeds[i]
+            text = new_warned.get(s)
+            record[s]["attempts"].append(attempt_record(new_per, j, text))
+            if text:
+                say(f"warning: training seed {seed_name(s, attempt)}: {text}")
+            if _standing(new_per, j, text is not None) < _standing(per_seed, i, True):
+                record[s]["kept"] = attempt
+                for a, b in zip(jax.tree.leaves(out), jax.tree.leaves(new_out), strict=True):
+                    a[i] = np.asarray(b)[j]
+                Xc[i] = np.asarray(new_Xc)[j]
+                for k in per_seed:
+                    per_seed[k][i] = new_per[k][j]
+        for i in again:
+            s = seeds[i]
+            say(f"training seed {s}: keeps attempt {record[s]['kept']}")
+    return out, Xc, per_seed, seconds, record
+
+
 def policy_tracks(env: UsvEnv, policy, params, x0, keys: Array) -> np.ndarray:
     """Noise-free-action rollouts [S, B, T+1, 11] of global policies (``params`` with a leading
     seed axis S, one key each in ``keys: [S, 2]``) from ``x0: [B, 11]``, with the env's sensor
@@ -523,7 +609,9 @@ class UsvRunConfig:
     (behaviour cloning on the recorded observations); seeds: training seeds (vmapped);
     heldout: number of held-out situations (drawn with ``heldout_seed``), each rolled out for
     the window's horizon plus ``eval_extra`` steps (to judge the return); identify: fit the
-    hull to the demos (else the nominal hull); sysid: its settings.
+    hull to the demos (else the nominal hull); sysid: its settings; retrain_warned: how many
+    more times a training seed of ``rgcl`` is trained, each time with a new key, while its local
+    controllers warn on their own training starts (:func:`train_retrying_warned`; 0: warn only).
     """
 
     task: UsvTaskConfig = UsvTaskConfig()
@@ -538,11 +626,16 @@ class UsvRunConfig:
     expert_max_step_mult: float = 10.0
     identify: bool = True
     sysid: object = None
+    retrain_warned: int = 1
 
     def __post_init__(self):
         unknown = set(self.methods) - set(METHODS)
         if unknown:
             raise ValueError(f"usv: unknown methods {sorted(unknown)}; choose from {METHODS}")
+        if self.retrain_warned < 0:
+            raise ValueError(f"usv: retrain_warned must be >= 0, not {self.retrain_warned}")
+        if len(set(self.seeds)) != len(self.seeds):
+            raise ValueError(f"usv: training seeds repeat: {list(self.seeds)}")
 
 
 @dataclass
@@ -709,22 +802,30 @@ def run_usv(
 
         _say(verbose, f"rGCL + MDGPS on the identified hull, seeds {list(config.seeds)}")
         rgcl = make_train(rgcl_config, train_env)
-        (state, metrics), seconds = _batched(rgcl.train, config.seeds, batch)
-        Xc = np.asarray(
-            jax.vmap(lambda c: final_rollouts(train_env, c))(
-                jax.tree.map(jnp.asarray, state.gps.controller)
-            )
+        train = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None)))
+        controllers = jax.jit(jax.vmap(lambda c: final_rollouts(train_env, c)))
+
+        def train_seeds(keys):
+            state, metrics = jax.block_until_ready(train(keys, batch))
+            return jax.tree.map(np.asarray, (state, metrics)), controllers(state.gps.controller)
+
+        (state, metrics), Xc, _, seconds, record = train_retrying_warned(
+            train_seeds,
+            lambda Xc: per_seed_figures(env, Xc, demo_score["demo_min_clearance_median_m"]),
+            config.seeds,
+            task_demos.num_episodes,
+            config.retrain_warned,
+            say=lambda text: _say(verbose, f"  {text}"),
         )
         ctrl = score_rollouts(env, Xc.reshape(-1, *Xc.shape[2:]), task_demos.X)
         ctrl["per_seed"] = per_seed_figures(env, Xc, ctrl["demo_min_clearance_median_m"])
         warnings = controller_warnings(config.seeds, ctrl["per_seed"], Xc.shape[1])
-        for seed, text in warnings:
-            _say(verbose, f"  warning: training seed {seed}: {text}")
         summary["rgcl"] = {
             "seconds": seconds,
             "controllers_on_demo_starts": ctrl,
             "true_cost_per_iteration": np.asarray(metrics.gps.cost).mean((0, 2)).tolist(),
             "warnings": {str(seed): text for seed, text in warnings},
+            "attempts": {str(seed): r for seed, r in record.items()},
         }
         if rgcl.network.config.form == "weighted" and rgcl_config.network.features == "env":
             summary["rgcl"]["cost_weights"] = learned_cost_weights(

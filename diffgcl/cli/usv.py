@@ -4,7 +4,7 @@ printing; the pipeline is :func:`diffgcl.algorithms.usv.run_usv`, the pictures
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
                 [--range-encoding saturated|metres] [--train-extra 150]
-                [--margins 5,10,20,30] [--seeds 1]
+                [--margins 5,10,20,30] [--seeds 1] [--retrain 1]
                 [--heldout 256] [--fast]
                 [--set a.b=value] [--out runs/usv]
 
@@ -83,6 +83,7 @@ def usv_command(args) -> int:
         seeds=tuple(range(args.seed, args.seed + args.seeds)),
         heldout=args.heldout,
         expert_iterations=4 if args.fast else 15,
+        retrain_warned=args.retrain if args.retrain is not None else (0 if args.fast else 1),
     )
     run = run_usv(demos, config, manifest=manifest, true_params=truth)
     paths = save_usv_plots(run, args.out, args.overwrite)
@@ -116,6 +117,14 @@ def register(subparsers) -> None:
         default=None,
         help="clearance margins (m) of the learned cost's barriers (default: from the demos' "
         "median clearance, 5,10,20,30 on the built-in bags)",
+    )
+    p.add_argument(
+        "--retrain",
+        type=int,
+        default=None,
+        help="train a seed again with a new key, at most N more times, while its local "
+        "controllers hit the pole or end off course on their own training starts (default 1, "
+        "with --fast 0)",
     )
     p.add_argument("--methods", default="rgcl,expert,bc", help="of rgcl, expert, bc")
     p.add_argument("--seeds", type=int, default=1)
