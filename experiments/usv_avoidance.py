@@ -121,7 +121,7 @@ def main(argv=None) -> int:
         "--margins",
         type=parse_margins,
         default=None,
-        help="clearance margins (m) of the learned cost's barriers, e.g. 5,10,20,30 "
+        help="clearance margins (m) of the learned cost's barriers, e.g. 5,10,15,20 "
         "(default: from the demos, UsvTaskConfig.proximity_margins)",
     )
     parser.add_argument(

@@ -319,11 +319,11 @@ def test_margins_for_clearance_by_hand():
     that merges two."""
     assert U.TUNED_CLEARANCE_M == 17.25
     for built_in in (17.248, 17.423):  # set 2, sets 1 + 2
-        assert U.margins_for_clearance(built_in) == (5.0, 10.0, 20.0, 30.0)
-    assert U.margins_for_clearance(30.0) == (9.0, 17.0, 35.0, 52.0)  # 8.7, 17.4, 34.8, 52.2
+        assert U.margins_for_clearance(built_in) == (5.0, 10.0, 15.0, 20.0)
+    assert U.margins_for_clearance(30.0) == (9.0, 17.0, 26.0, 35.0)  # 8.7, 17.4, 26.1, 34.8
     assert U.margins_for_clearance(34.5, (5.0, 15.0)) == (10.0, 30.0)
-    near = np.asarray(U.margins_for_clearance(2.0))  # 0.58, 1.16, 2.32, 3.48: 1, 1 merge
-    np.testing.assert_allclose(near, np.asarray([5.0, 10.0, 20.0, 30.0]) * 2.0 / 17.25)
+    near = np.asarray(U.margins_for_clearance(2.0))  # 0.58, 1.16, 1.74, 2.32: 1, 1 merge
+    np.testing.assert_allclose(near, np.asarray([5.0, 10.0, 15.0, 20.0]) * 2.0 / 17.25)
     for bad in (0.0, -3.0, float("nan"), float("inf")):
         with pytest.raises(ValueError, match="median clearance"):
             U.margins_for_clearance(bad)

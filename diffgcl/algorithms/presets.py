@@ -160,7 +160,7 @@ def usv() -> RGCLConfig:
     """The USV task (:mod:`diffgcl.algorithms.usv`): rGCL v2 on the hull with normalised actions,
     a cost of learned non-negative weights on a sailor's squared residuals (cross-track and
     heading error, surge and progress speed errors, sway, yaw rate, depth inside the task's
-    clearance margins, by default from the demos (5, 10, 20, 30 m on the built-in bags;
+    clearance margins, by default from the demos (5, 10, 15, 20 m on the built-in bags;
     :func:`diffgcl.algorithms.usv.margins_for_clearance`); ``network.form="weighted"``,
     :meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`) plus the actuators' limit barrier, and a
     global MDGPS policy on the boat's observations (noisy sensors in its training samples).

@@ -62,11 +62,11 @@ class UsvTaskConfig:
     trained too (trained on the window alone, policies drifted off the line after it, and runs
     diverged on some seeds: docs/usv.md); proximity_margins: the clearances (m) of the learned
     cost's barrier residuals (:meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`), or None to take
-    them from the demos (:func:`margins_for_clearance`: 5, 10, 20, 30 m on the built-in bags).
+    them from the demos (:func:`margins_for_clearance`: 5, 10, 15, 20 m on the built-in bags).
     Their largest bounds where the learned cost can still push the boat away: with a 30 m
     margin, boats passed at 1.25–1.35× the demos' clearance (17 m on the built-in bags), with
-    20 m at about 1.0×, but one training seed in ten passed too close and hit the pole in 2 % of
-    its episodes (docs/usv.md).
+    20 m at about 1.1×; but with 20 m about one training seed in five passed too close and hit
+    the pole, unless it was trained again (:attr:`UsvRunConfig.retrain_warned`; docs/usv.md).
     """
 
     before: int = 120
@@ -198,8 +198,8 @@ def margins_for_clearance(clearance_m: float, margins=PROXIMITY_MARGINS) -> tupl
     """Clearance margins (m) for demos that pass at a median minimum clearance ``clearance_m``:
     ``margins``, tuned for the built-in demos' :data:`TUNED_CLEARANCE_M`, scaled by the ratio and
     rounded to 1 m (unrounded where rounding would merge two or make one 0). The built-in bags
-    (17.25 m on set 2, 17.4 m on sets 1 + 2) keep 5, 10, 20, 30 m; demos that pass at 30 m get
-    9, 17, 35, 52 m."""
+    (17.25 m on set 2, 17.4 m on sets 1 + 2) keep 5, 10, 15, 20 m; demos that pass at 30 m get
+    9, 17, 26, 35 m."""
     if not clearance_m > 0 or not np.isfinite(clearance_m):
         raise ValueError(
             f"usv: the demos' median clearance is {clearance_m} m; margins need a positive one "

@@ -4,7 +4,7 @@ printing; the pipeline is :func:`diffgcl.algorithms.usv.run_usv`, the pictures
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
                 [--range-encoding saturated|metres] [--train-extra 150]
-                [--margins 5,10,20,30] [--seeds 1] [--retrain 1]
+                [--margins 5,10,15,20] [--seeds 1] [--retrain 1]
                 [--heldout 256] [--fast]
                 [--set a.b=value] [--out runs/usv]
 
@@ -116,7 +116,7 @@ def register(subparsers) -> None:
         type=parse_margins,
         default=None,
         help="clearance margins (m) of the learned cost's barriers (default: from the demos' "
-        "median clearance, 5,10,20,30 on the built-in bags)",
+        "median clearance, 5,10,15,20 on the built-in bags)",
     )
     p.add_argument(
         "--retrain",

@@ -69,7 +69,7 @@ from diffgcl.sim.sensors import (
 from diffgcl.types import Array, PRNGKey
 
 IX_RADIUS = 10
-PROXIMITY_MARGINS = (5.0, 10.0, 20.0, 30.0)  # m of clearance, the weighted cost's barriers
+PROXIMITY_MARGINS = (5.0, 10.0, 15.0, 20.0)  # m of clearance, the weighted cost's barriers
 PROXIMITY_SOFTNESS = 2.0  # m
 COURSE_RESIDUAL_NAMES = (
     "cross_track",
@@ -330,7 +330,7 @@ class UsvEnv:
         cross-track error (m); 2 sin(ψ/2) (heading error; its square is 2(1 − cos ψ)); surge
         speed minus cruise and progress along the course (speed made good) minus cruise, sway
         speed (m/s), yaw rate (rad/s); and how far the hull is inside each of the M clearance
-        margins d (``proximity_margins``, default :data:`PROXIMITY_MARGINS`: 5, 10, 20, 30 m),
+        margins d (``proximity_margins``, default :data:`PROXIMITY_MARGINS`: 5, 10, 15, 20 m),
         ``s · softplus((d − clearance)/s)`` with s = 2 m. A
         positive mix of their squares is a convex barrier that rises as the clearance falls
         below the margins the weights pick, and is zero well outside the largest: passing at a
@@ -425,7 +425,7 @@ def make_usv_env(
     if not margins or min(margins) <= 0 or list(margins) != sorted(set(margins)):
         raise ValueError(
             f"usv: proximity margins {proximity_margins!r}; give one or more increasing "
-            "clearances in m, each > 0 (e.g. 5, 10, 20, 30)"
+            "clearances in m, each > 0 (e.g. 5, 10, 15, 20)"
         )
     dtype = jnp.zeros(()).dtype
     x0 = default_conditions(speed=cruise_speed) if x0 is None else x0
