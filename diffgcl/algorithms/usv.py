@@ -667,7 +667,7 @@ def _batched(fn, seeds, *args):
     """``jit(vmap(fn))`` over the seeds' keys; host arrays out and seconds (compile + run)."""
     import time
 
-    keys = jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
+    keys = jnp.stack([training_key(s) for s in seeds])
     in_axes = (0,) + (None,) * len(args)
     t0 = time.perf_counter()
     out = jax.block_until_ready(jax.jit(jax.vmap(fn, in_axes=in_axes))(keys, *args))
@@ -809,7 +809,7 @@ def run_usv(
             state, metrics = jax.block_until_ready(train(keys, batch))
             return jax.tree.map(np.asarray, (state, metrics)), controllers(state.gps.controller)
 
-        (state, metrics), Xc, _, seconds, record = train_retrying_warned(
+        (state, metrics), Xc, per_seed, seconds, record = train_retrying_warned(
             train_seeds,
             lambda Xc: per_seed_figures(env, Xc, demo_score["demo_min_clearance_median_m"]),
             config.seeds,
@@ -818,13 +818,13 @@ def run_usv(
             say=lambda text: _say(verbose, f"  {text}"),
         )
         ctrl = score_rollouts(env, Xc.reshape(-1, *Xc.shape[2:]), task_demos.X)
-        ctrl["per_seed"] = per_seed_figures(env, Xc, ctrl["demo_min_clearance_median_m"])
-        warnings = controller_warnings(config.seeds, ctrl["per_seed"], Xc.shape[1])
+        ctrl["per_seed"] = per_seed  # the kept attempts'
+        kept = {seed: r["attempts"][r["kept"]] for seed, r in record.items()}
         summary["rgcl"] = {
             "seconds": seconds,
             "controllers_on_demo_starts": ctrl,
             "true_cost_per_iteration": np.asarray(metrics.gps.cost).mean((0, 2)).tolist(),
-            "warnings": {str(seed): text for seed, text in warnings},
+            "warnings": {str(seed): a["warning"] for seed, a in kept.items() if a["warning"]},
             "attempts": {str(seed): r for seed, r in record.items()},
         }
         if rgcl.network.config.form == "weighted" and rgcl_config.network.features == "env":
