@@ -7,7 +7,9 @@ the boat's observations → every policy rolled out from held-out situations (po
 boat's offset, heading, speed and the pole's radius drawn from the demos' ranges) on the
 generator's **true** hull with sensor noise. References in the same run: MDGPS with the
 hand-written cost (``expert``) and behaviour cloning of the recorded observations (``bc``).
-Main run: set 2 (47 episodes, LiDAR); variant: radar-only observations on all 66.
+Main run: set 2 (47 episodes, LiDAR); variant: radar-only observations on all 66, trained in a
+process of its own beside the main run (one run alone keeps about one of the two cores busy;
+``--serial`` runs them one after the other).
 
     python experiments/usv_avoidance.py --json runs/usv_avoidance.json [--out runs/usv]
     python experiments/usv_avoidance.py --fast          # a few short episodes, minutes
@@ -22,9 +24,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import io
 import json
+import multiprocessing
 import sys
 import time
+import traceback
 from pathlib import Path
 
 from diffgcl.cli.usv import parse_margins
@@ -69,6 +74,48 @@ def full_configs(seeds, heldout: int, heldout_seed: int = 1000):
     return main, radar
 
 
+class _Labelled(io.TextIOBase):
+    """A text stream that writes each line to ``stream`` behind ``label`` (the variant's process
+    shares the terminal with the main run's)."""
+
+    def __init__(self, stream, label: str):
+        self.stream, self.label, self.pending = stream, label, ""
+
+    def write(self, text: str) -> int:
+        lines = (self.pending + text).split("\n")
+        self.pending = lines.pop()
+        for line in lines:
+            self.stream.write(f"{self.label}{line}\n")
+        self.stream.flush()
+        return len(text)
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
+def variant_summary(demos, config, manifest, truth, label: str) -> dict:
+    """One variant's :func:`run_usv` summary, in a process of its own (spawned, so its JAX is its
+    own); its printed lines carry ``label``."""
+    sys.stdout = _Labelled(sys.__stdout__, label)
+    from diffgcl.runtime import enable_compilation_cache
+
+    enable_compilation_cache()
+    from diffgcl.algorithms.usv import run_usv
+
+    return run_usv(demos, config, manifest=manifest, true_params=truth).summary
+
+
+def variant_result(pending, name: str) -> dict:
+    """The variant's summary (``pending``: its ``AsyncResult``), or ``{"error": ...}`` when its
+    process failed (the main run's figures are written all the same)."""
+    try:
+        return pending.get()
+    except Exception as error:  # the child's exception, re-raised here
+        detail = "".join(traceback.format_exception_only(type(error), error)).strip()
+        print(f"== {name} variant failed: {detail}", file=sys.stderr)
+        return {"error": detail}
+
+
 def headline(main: dict, radar: dict | None) -> dict:
     """The issue's keys from the runs' summaries."""
     rgcl = main.get("rgcl", {})
@@ -103,6 +150,12 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--heldout", type=int, default=256, help="held-out situations")
     parser.add_argument("--no-radar", action="store_true", help="skip the radar-only variant")
+    parser.add_argument(
+        "--serial",
+        action="store_true",
+        help="run the radar-only variant after the main run, in this process (default: beside "
+        "it, in a process of its own; twice the memory)",
+    )
     parser.add_argument("--methods", default=None, help="of rgcl, expert, bc (default: all)")
     parser.add_argument("--conditions", type=int, default=None, help="use the first N demos")
     parser.add_argument(
@@ -179,19 +232,35 @@ def main(argv=None) -> int:
         rgcl = with_overrides(main_cfg.rgcl or usv_preset(), args.set)
         main_cfg = dataclasses.replace(main_cfg, rgcl=rgcl)
         radar_cfg = dataclasses.replace(radar_cfg, rgcl=rgcl)
+    radar_label = "== radar-only variant: sets " + ", ".join(radar_cfg.task.sets)
+    pool = None
+    if not args.no_radar and not args.serial:
+        print(radar_label + ", in a process of its own (lines marked [radar])")
+        pool = multiprocessing.get_context("spawn").Pool(1)
+        beside = pool.apply_async(variant_summary, (demos, radar_cfg, manifest, truth, "[radar] "))
     print("== main run: " + ", ".join(main_cfg.task.sets) + f" ({main_cfg.task.observation})")
-    run = run_usv(demos, main_cfg, manifest=manifest, true_params=truth)
+    try:
+        run = run_usv(demos, main_cfg, manifest=manifest, true_params=truth)
+    except BaseException:
+        if pool is not None:
+            pool.terminate()  # not left training on after a failed or interrupted main run
+        raise
     radar = None
-    if not args.no_radar:
-        print("== radar-only variant: sets " + ", ".join(radar_cfg.task.sets))
-        radar = run_usv(demos, radar_cfg, manifest=manifest, true_params=truth)
+    if pool is not None:
+        radar = variant_result(beside, "radar-only")
+        pool.close()
+        pool.join()
+    elif not args.no_radar:
+        print(radar_label)
+        radar = run_usv(demos, radar_cfg, manifest=manifest, true_params=truth).summary
     summary = {
-        **headline(run.summary, radar.summary if radar else None),
+        **headline(run.summary, radar),
         "wall_seconds": time.perf_counter() - t0,
         "fast": args.fast,
         "bags": str(args.bags) if args.bags else "built-in synthetic Odin-like",
         "main": run.summary,
-        "radar_only": radar.summary if radar else None,
+        "radar_only": radar,
+        "radar_beside_main": pool is not None,
     }
     print(json.dumps({k: v for k, v in summary.items() if not isinstance(v, dict)}, indent=1))
     if args.out is not None:
@@ -202,7 +271,7 @@ def main(argv=None) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(summary, indent=1, default=float))
         print(f"summary in {args.json}")
-    return 0
+    return 1 if radar is not None and "error" in radar else 0
 
 
 if __name__ == "__main__":
