@@ -38,7 +38,7 @@ from diffgcl import api
 from diffgcl.algorithms.gps import GPSConfig
 from diffgcl.algorithms.gps_runner import run_seeds
 from diffgcl.data.mujoco_demos import save_npz
-from diffgcl.runtime import enable_compilation_cache, set_cpu_devices
+from diffgcl.runtime import prepare_process, set_cpu_devices
 from diffgcl.sim.rollout import rollout_controller, smooth_noise
 
 # ---- the user's tasks (hand-written costs and success tests) ------------------------------------
@@ -216,7 +216,7 @@ def main(argv=None) -> int:
     set_cpu_devices()
     if args.x64:
         jax.config.update("jax_enable_x64", True)
-    enable_compilation_cache()
+    prepare_process()
     n_seeds = args.seeds or (1 if args.fast else 4)
     iterations = args.iterations or (10 if args.fast else None)
     expert_seeds = list(range(2 if args.fast else 4))

@@ -183,9 +183,9 @@ def main(argv=None) -> int:
     from diffgcl.algorithms.presets import default
     from diffgcl.algorithms.rgcl import demo_batch, make_train
     from diffgcl.envs import make_env
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
     t_start = time.perf_counter()
     methods = args.methods.split(",")
     n_seeds = 2 if args.fast and args.seeds == 16 else args.seeds

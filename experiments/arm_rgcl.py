@@ -279,9 +279,9 @@ def main(argv=None) -> int:
     if args.x64:
         jax.config.update("jax_enable_x64", True)
     from diffgcl.envs import make_env
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache(args.jax_cache)
+    prepare_process(args.jax_cache)
     env = make_env("arm")
     demos = load_demo_batch(None, env)
     n = FAST_SEEDS if args.fast and args.seeds == 32 else args.seeds

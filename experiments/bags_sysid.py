@@ -57,7 +57,7 @@ from diffgcl.data.synth import (  # noqa: E402
 )
 from diffgcl.data.sysid import SysIdConfig, identify, prediction_error  # noqa: E402
 from diffgcl.data.topics import TopicMap, default_topic_map, other_boat_topic_map  # noqa: E402
-from diffgcl.runtime import enable_compilation_cache  # noqa: E402
+from diffgcl.runtime import prepare_process  # noqa: E402
 from diffgcl.sim import hull  # noqa: E402
 from diffgcl.sim.sensors import SensorLayout  # noqa: E402
 
@@ -278,7 +278,7 @@ def main(argv=None) -> int:
     )
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    enable_compilation_cache()
+    prepare_process()
 
     base = fast_config() if args.fast else default_config()
     cfg = dataclasses.replace(

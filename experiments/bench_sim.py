@@ -35,7 +35,7 @@ from mujoco import rollout as c_rollout  # noqa: E402
 
 from diffgcl.dynamics.autodiff import linearize_trajectory  # noqa: E402
 from diffgcl.envs import make_env  # noqa: E402
-from diffgcl.runtime import enable_compilation_cache  # noqa: E402
+from diffgcl.runtime import prepare_process  # noqa: E402
 from diffgcl.sim.rollout import sample_controller  # noqa: E402
 from diffgcl.sim.sharding import batch_mesh, shard_batch  # noqa: E402
 from diffgcl.sim.warp_backend import WarpUnavailableError, benchmark_warp  # noqa: E402
@@ -143,7 +143,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--fast", action="store_true", help="small sizes, one repeat")
     parser.add_argument("--json", help="write the figures to this JSON file")
     args = parser.parse_args(argv)
-    enable_compilation_cache()
+    prepare_process()
     T = 100
     sizes = (64, 256) if args.fast else (64, 1024, 8192)
     repeats = 1 if args.fast else 3

@@ -29,7 +29,7 @@ import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 
-from diffgcl.runtime import enable_compilation_cache  # noqa: E402
+from diffgcl.runtime import prepare_process  # noqa: E402
 from diffgcl.sim import hull as H  # noqa: E402
 
 DT = 0.1
@@ -199,7 +199,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--fast", action="store_true", help="shorter trials")
     parser.add_argument("--json", metavar="PATH", help="write the figures as JSON")
     args = parser.parse_args(argv)
-    enable_compilation_cache()
+    prepare_process()
     out = run(args.fast)
     rows = [
         ("top speed", f"{out['top_speed_kn']:.1f} kn ({out['top_speed_ms']:.2f} m/s)"),

@@ -444,9 +444,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--no-ablation", action="store_true")
     args = parser.parse_args(argv)
     jax.config.update("jax_enable_x64", True)
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
     config = fast_config() if args.fast else default_config()
     seeds = list(range(args.seeds or (2 if args.fast else 4)))
     out = run(config, seeds)

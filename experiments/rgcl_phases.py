@@ -64,10 +64,10 @@ def main(argv=None) -> int:
     from diffgcl.algorithms.rgcl import make_train
     from diffgcl.algorithms.runner import load_demo_batch
     from diffgcl.envs import make_env
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
     from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
-    enable_compilation_cache()
+    prepare_process()
     env = make_env("arm")
     n = args.seeds
     keys = jax.random.split(jax.random.PRNGKey(0), n)

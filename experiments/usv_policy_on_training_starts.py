@@ -24,9 +24,9 @@ def main(argv=None) -> int:
     parser.add_argument("--heldout-seed", type=int, default=1000)
     args = parser.parse_args(argv)
 
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
     import jax
     import jax.numpy as jnp
 

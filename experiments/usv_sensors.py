@@ -41,7 +41,7 @@ from diffgcl.data.synth import SynthConfig, synthesize  # noqa: E402
 from diffgcl.data.task_frame import to_task_frame  # noqa: E402
 from diffgcl.envs.usv import make_usv_env  # noqa: E402
 from diffgcl.eval.sensors import demo_beams, lidar_agreement, radar_agreement  # noqa: E402
-from diffgcl.runtime import enable_compilation_cache  # noqa: E402
+from diffgcl.runtime import prepare_process  # noqa: E402
 
 LIDAR_BANDS = ((0.0, 10.0), (10.0, 20.0), (20.0, 30.0), (30.0, 40.0), (40.0, 50.0), (50.0, 60.0))
 RADAR_BANDS = ((0.0, 15.0), (15.0, 40.0), (40.0, 80.0), (80.0, 300.0))
@@ -136,7 +136,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--fast", action="store_true", help="2 short episodes")
     ap.add_argument("--json", type=Path, default=None)
     args = ap.parse_args(argv)
-    enable_compilation_cache()
+    prepare_process()
     t0 = time.perf_counter()
     n = 2 if args.fast else args.episodes
     approach = (60.0, 80.0) if args.fast else (140.0, 220.0)

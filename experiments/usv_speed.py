@@ -44,9 +44,9 @@ def main(argv=None) -> int:
 
     from diffgcl.envs.usv import default_conditions, make_usv_env
     from diffgcl.policies.network import GaussianPolicy, PolicyConfig
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
     B, T = args.batch, args.horizon
     env = make_usv_env(default_conditions(), horizon=T)
     x0 = jnp.tile(env.initial_states(), (B // env.initial_states().shape[0] + 1, 1))[:B]

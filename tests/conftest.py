@@ -5,6 +5,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from diffgcl.runtime import enable_compilation_cache  # noqa: E402
+from diffgcl.runtime import prepare_process  # noqa: E402
 
-enable_compilation_cache()
+prepare_process()

@@ -45,9 +45,9 @@ def main() -> int:
     import numpy as np
 
     from diffgcl.algorithms import sweep
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
     sys.path.insert(0, str(Path(__file__).parent))
     from test_rgcl import Slider, tiny_config
 

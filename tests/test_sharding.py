@@ -9,8 +9,8 @@ SCRIPT = textwrap.dedent(
     """
     import jax, jax.numpy as jnp, numpy as np
     jax.config.update("jax_enable_x64", True)
-    from diffgcl.runtime import enable_compilation_cache
-    enable_compilation_cache()
+    from diffgcl.runtime import prepare_process
+    prepare_process()
     from diffgcl.envs import make_env
     from diffgcl.sim.rollout import sample_controller
     from diffgcl.sim.sharding import shard_batch, batch_mesh
@@ -94,8 +94,8 @@ RUNNER_SCRIPT = textwrap.dedent(
     from pathlib import Path
     import jax, jax.numpy as jnp, numpy as np
     jax.config.update("jax_enable_x64", True)
-    from diffgcl.runtime import enable_compilation_cache
-    enable_compilation_cache()
+    from diffgcl.runtime import prepare_process
+    prepare_process()
     sys.path.insert(0, "tests")
     from test_rgcl import Slider, tiny_config
     from diffgcl.algorithms.expert import make_demo_set, sample_expert

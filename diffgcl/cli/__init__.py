@@ -119,7 +119,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from diffgcl.runtime import apply_devices_option, enable_compilation_cache, set_cpu_devices
+    from diffgcl.runtime import apply_devices_option, prepare_process, set_cpu_devices
 
     args = build_parser().parse_args(argv)
     args.argv = list(sys.argv[1:] if argv is None else argv)  # for --local-processes
@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         apply_devices_option(args)
     else:
         set_cpu_devices()  # seed batches are sharded over the cores
-    enable_compilation_cache()
+    prepare_process()
     return int(args.func(args) or 0)
 
 

@@ -224,9 +224,9 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="diffgcl")
     register(parser.add_subparsers(dest="command", required=True))
     args = parser.parse_args(argv)
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
     return run(args)
 
 

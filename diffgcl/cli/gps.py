@@ -68,9 +68,9 @@ def run_arm_gps(args) -> dict:
     """Everything ``experiments/arm_gps.py`` and ``diffgcl gps`` do; returns the summary."""
     if args.x64:
         jax.config.update("jax_enable_x64", True)
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
     n_seeds = 4 if args.fast and args.seeds == 32 else args.seeds
     seeds = list(range(args.first_seed, args.first_seed + n_seeds))
     compare = (not args.fast) if args.compare is None else args.compare
@@ -205,9 +205,9 @@ def _demos_command(args) -> int:
     lowest final cost (as the built-in demos are chosen)."""
     if args.x64:
         jax.config.update("jax_enable_x64", True)
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
     _check_demo_folder(args.out)
     env = make_arm(args)
     config = config_from_args(args)

@@ -50,9 +50,9 @@ RGCL_ENVS = ("arm",)  # envs with rGCL presets and evaluation so far
 def _setup(args):
     if getattr(args, "x64", False):
         jax.config.update("jax_enable_x64", True)
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
 
 
 def _policy_settings(args):
