@@ -36,26 +36,12 @@ from diffgcl.cli.usv import parse_margins
 
 
 def fast_configs():
-    from diffgcl.algorithms.presets import usv as usv_preset
-    from diffgcl.algorithms.presets import with_overrides
-    from diffgcl.algorithms.usv import UsvRunConfig, UsvTaskConfig
+    from diffgcl.algorithms.usv import fast_run_config
 
-    rgcl = with_overrides(
-        usv_preset(),
-        [
-            "iterations=6",
-            "freeze_last=2",
-            "gcl.pretrain_steps=100",
-            "gcl.n_steps=20",
-            "policy.s_step.n_steps=100",
-        ],
-    )
-    task = UsvTaskConfig(before=100, after=140, train_extra=40)
-    # No retraining of warned seeds: a smoke test's 6 iterations leave controllers off course.
-    main = UsvRunConfig(task=task, rgcl=rgcl, heldout=32, expert_iterations=4, retrain_warned=0)
+    main = fast_run_config()
     radar = dataclasses.replace(
         main,
-        task=dataclasses.replace(task, sets=("1", "2"), observation="radar"),
+        task=dataclasses.replace(main.task, sets=("1", "2"), observation="radar"),
         methods=("rgcl",),
     )
     return main, radar
@@ -97,9 +83,9 @@ def variant_summary(demos, config, manifest, truth, label: str) -> dict:
     """One variant's :func:`run_usv` summary, in a process of its own (spawned, so its JAX is its
     own); its printed lines carry ``label``."""
     sys.stdout = _Labelled(sys.__stdout__, label)
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
     from diffgcl.algorithms.usv import run_usv
 
     return run_usv(demos, config, manifest=manifest, true_params=truth).summary
@@ -189,9 +175,9 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="plots (a new or own folder)")
     args = parser.parse_args(argv)
 
-    from diffgcl.runtime import enable_compilation_cache
+    from diffgcl.runtime import prepare_process
 
-    enable_compilation_cache()
+    prepare_process()
 
     from diffgcl.algorithms.presets import usv as usv_preset
     from diffgcl.algorithms.presets import with_overrides

@@ -314,6 +314,25 @@ def test_cli_usv_choices_are_the_envs():
     assert args.range_encoding == U.UsvTaskConfig().range_encoding
 
 
+def test_cli_fast_is_the_experiments_fast_and_options_override_it():
+    """``diffgcl usv --fast`` runs :func:`fast_run_config` (as ``experiments/usv_avoidance.py
+    --fast`` does); an option or ``--set`` given beside it wins over the fast scale."""
+    from diffgcl.algorithms.presets import usv as usv_preset
+    from diffgcl.cli import build_parser
+    from diffgcl.cli.usv import run_config
+
+    parse = build_parser().parse_args
+    assert run_config(parse(["usv", "--fast"])) == U.fast_run_config()
+    full = run_config(parse(["usv"]))
+    assert full == U.UsvRunConfig(rgcl=usv_preset())
+    assert (full.heldout, full.retrain_warned, full.task.train_extra) == (256, 1, 150)
+    custom = run_config(
+        parse(["usv", "--fast", "--set", "iterations=3", "--heldout", "8", "--retrain", "1"])
+    )
+    assert custom.rgcl.iterations == 3 and custom.rgcl.freeze_last == 2
+    assert (custom.heldout, custom.retrain_warned, custom.task.before) == (8, 1, 100)
+
+
 def test_margins_for_clearance_by_hand():
     """The tuned margins scaled by the demos' clearance over the tuned one, rounded to 1 m unless
     that merges two."""

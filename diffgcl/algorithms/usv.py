@@ -638,6 +638,34 @@ class UsvRunConfig:
             raise ValueError(f"usv: training seeds repeat: {list(self.seeds)}")
 
 
+FAST_RGCL_OVERRIDES = (
+    "iterations=6",
+    "freeze_last=2",
+    "gcl.pretrain_steps=100",
+    "gcl.n_steps=20",
+    "policy.s_step.n_steps=100",
+)
+
+
+def fast_run_config(task: UsvTaskConfig | None = None) -> UsvRunConfig:
+    """A run at smoke-test scale (``--fast`` of ``diffgcl usv`` and
+    ``experiments/usv_avoidance.py``): ``task`` (default :class:`UsvTaskConfig`) with windows of
+    240 steps (100 before the closest approach, 140 after, 40 trained past them), rGCL with
+    :data:`FAST_RGCL_OVERRIDES` (6 iterations, the last 2 on a frozen cost, shorter GCL and
+    S-step passes), 4 iterations of the hand-written cost's reference, 32 held-out situations
+    and no retraining (6 iterations leave controllers off course: every seed would warn)."""
+    import dataclasses
+
+    from diffgcl.algorithms.presets import usv as usv_preset
+    from diffgcl.algorithms.presets import with_overrides
+
+    task = dataclasses.replace(
+        task if task is not None else UsvTaskConfig(), before=100, after=140, train_extra=40
+    )
+    rgcl = with_overrides(usv_preset(), list(FAST_RGCL_OVERRIDES))
+    return UsvRunConfig(task=task, rgcl=rgcl, heldout=32, expert_iterations=4, retrain_warned=0)
+
+
 @dataclass
 class UsvRun:
     """What :func:`run_usv` returns: ``summary`` (JSON-ready figures), the task env on the

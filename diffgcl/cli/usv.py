@@ -36,23 +36,46 @@ def parse_margins(text: str) -> tuple[float, ...]:
     return margins
 
 
-def usv_command(args) -> int:
+def run_config(args):
+    """The :class:`~diffgcl.algorithms.usv.UsvRunConfig` that ``diffgcl usv`` runs for ``args``:
+    the default scale, or :func:`~diffgcl.algorithms.usv.fast_run_config` with ``--fast``; the
+    options given on the command line (``--set`` included) override either."""
     from diffgcl.algorithms.presets import usv as usv_preset
     from diffgcl.algorithms.presets import with_overrides
-    from diffgcl.algorithms.usv import (
-        METHODS,
-        UsvRunConfig,
-        UsvTaskConfig,
-        builtin_demos,
-        load_bag_demos,
-        run_usv,
+    from diffgcl.algorithms.usv import METHODS, UsvRunConfig, UsvTaskConfig, fast_run_config
+
+    task = UsvTaskConfig(
+        sets=tuple(args.sets.split(",")),
+        observation=args.observation,
+        range_encoding=args.range_encoding,
     )
+    base = fast_run_config(task) if args.fast else UsvRunConfig(task=task)
+    task = base.task
+    if args.train_extra is not None:
+        task = dataclasses.replace(task, train_extra=args.train_extra)
+    if args.margins is not None:
+        task = dataclasses.replace(task, proximity_margins=args.margins)
+    methods = tuple(m for m in args.methods.split(",") if m)
+    return dataclasses.replace(
+        base,
+        task=task,
+        rgcl=with_overrides(base.rgcl if base.rgcl is not None else usv_preset(), args.set),
+        methods=methods or METHODS,
+        seeds=tuple(range(args.seed, args.seed + args.seeds)),
+        heldout=args.heldout if args.heldout is not None else base.heldout,
+        retrain_warned=args.retrain if args.retrain is not None else base.retrain_warned,
+    )
+
+
+def usv_command(args) -> int:
+    from diffgcl.algorithms.usv import builtin_demos, load_bag_demos, run_usv
     from diffgcl.io import check_output_folder
     from diffgcl.viz.usv import USV_FOLDER, save_usv_plots
 
     check_output_folder(args.out, USV_FOLDER, args.overwrite)
     if args.topics is not None and args.bags is None:
         raise SystemExit("diffgcl usv: --topics needs --bags")
+    config = run_config(args)
     if args.bags is not None:
         demos, manifest, truth = load_bag_demos(args.bags, args.topics), None, None
     else:
@@ -60,31 +83,6 @@ def usv_command(args) -> int:
 
         demos, folder = builtin_demos(fast=args.fast)
         manifest, truth = folder / "manifest.json", true_params()
-    methods = tuple(m for m in args.methods.split(",") if m)
-    task = UsvTaskConfig(
-        sets=tuple(args.sets.split(",")),
-        observation=args.observation,
-        range_encoding=args.range_encoding,
-    )
-    rgcl = with_overrides(usv_preset(), args.set)
-    if args.fast:
-        task = dataclasses.replace(task, before=100, after=140, train_extra=40)
-        rgcl = with_overrides(
-            rgcl, ["iterations=6", "freeze_last=2", "gcl.pretrain_steps=100", "gcl.n_steps=20"]
-        )
-    if args.train_extra is not None:
-        task = dataclasses.replace(task, train_extra=args.train_extra)
-    if args.margins is not None:
-        task = dataclasses.replace(task, proximity_margins=args.margins)
-    config = UsvRunConfig(
-        task=task,
-        rgcl=rgcl,
-        methods=methods or METHODS,
-        seeds=tuple(range(args.seed, args.seed + args.seeds)),
-        heldout=args.heldout,
-        expert_iterations=4 if args.fast else 15,
-        retrain_warned=args.retrain if args.retrain is not None else (0 if args.fast else 1),
-    )
     run = run_usv(demos, config, manifest=manifest, true_params=truth)
     paths = save_usv_plots(run, args.out, args.overwrite)
     brief = {k: v for k, v in run.summary.items() if not isinstance(v, (dict, list))}
@@ -129,7 +127,9 @@ def register(subparsers) -> None:
     p.add_argument("--methods", default="rgcl,expert,bc", help="of rgcl, expert, bc")
     p.add_argument("--seeds", type=int, default=1)
     p.add_argument("--seed", type=int, default=0, help="first seed")
-    p.add_argument("--heldout", type=int, default=256, help="held-out situations to judge")
+    p.add_argument(
+        "--heldout", type=int, default=None, help="held-out situations to judge (256, --fast 32)"
+    )
     p.add_argument("--fast", action="store_true", help="few short episodes, few iterations")
     p.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     p.add_argument("--out", type=Path, default=Path("runs/usv"))
