@@ -168,7 +168,8 @@ def main(argv=None) -> int:
         type=int,
         default=None,
         help="train a seed again with a new key, at most N more times, while its local "
-        "controllers warn (UsvRunConfig.retrain_warned; default 1, with --fast 0)",
+        "controllers or its policy warn on their own training starts "
+        "(UsvRunConfig.retrain_warned; default 1, with --fast 0)",
     )
     parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
     parser.add_argument("--json", type=Path, default=None)

@@ -99,16 +99,20 @@ def test_scores_of_hand_built_tracks():
 
 
 def test_warned_seeds_are_trained_again():
-    """A seed whose controllers warn on their training starts is trained again with a new key,
-    at most ``retrain`` times, until an attempt does not warn; the first such attempt is kept,
-    else the one with the fewest hits (then the most back on course). Others train once."""
-    outcomes = {  # (seed, attempt) -> controllers' (hit rate, back on course)
-        (0, 0): (0.0, 1.0),  # no warning: trained once
-        (1, 0): (0.1, 1.0),  # hits, then none: attempt 1 kept
-        (1, 1): (0.0, 0.95),
-        (2, 0): (0.1, 1.0),  # warns every time: the fewest hits kept (attempt 2)
-        (2, 1): (0.2, 1.0),
-        (2, 2): (0.0, 0.5),
+    """A seed whose controllers or policy warn on their training starts is trained again with a
+    new key, at most ``retrain`` times, until an attempt does not warn; the first such attempt is
+    kept, else the best (the policy's hits, then its clearance short of 0.9×, then the
+    controllers' hits, then more back on course). Others train once."""
+    fine = (0.0, 1.0, 1.0)  # (hit rate, back on course, clearance ratio)
+    outcomes = {  # (seed, attempt) -> (controllers', policy's) figures
+        (0, 0): (fine, fine),  # no warning: trained once
+        (1, 0): ((0.1, 1.0, 1.0), fine),  # controllers hit, then none: attempt 1 kept
+        (1, 1): ((0.0, 0.95, 1.0), fine),
+        (2, 0): ((0.1, 1.0, 1.0), (0.0, 1.0, 0.7)),  # warns every time: the policy decides
+        (2, 1): ((0.0, 1.0, 1.0), (0.0, 1.0, 0.8)),  # fine controllers, a close policy
+        (2, 2): ((0.2, 0.5, 1.0), (0.0, 1.0, 0.85)),  # the closest to 0.9×: kept
+        (3, 0): (fine, (0.0, 1.0, 0.85)),  # only the policy warns, then not: attempt 1 kept
+        (3, 1): ((0.0, 1.0, 1.1), (0.0, 1.0, 0.95)),
     }
     by_key = {tuple(np.asarray(U.training_key(s, a)).tolist()): (s, a) for s, a in outcomes}
     calls = []
@@ -117,36 +121,88 @@ def test_warned_seeds_are_trained_again():
         ids = [by_key[tuple(k)] for k in np.asarray(keys).tolist()]
         calls.append(ids)
         out = {"id": np.asarray(ids), "w": np.ones((len(ids), 2, 3))}
-        return out, np.asarray([outcomes[i] for i in ids])
+        Xc, Xp = (np.asarray([outcomes[i][part] for i in ids]) for part in (0, 1))
+        return out, Xc, Xp
 
-    def figures(Xc):
+    def figures(X):
         return {
-            "collision_rate": Xc[:, 0].tolist(),
-            "return_to_course_rate": Xc[:, 1].tolist(),
-            "clearance_ratio_vs_demos": [1.0] * len(Xc),
+            "collision_rate": X[:, 0].tolist(),
+            "return_to_course_rate": X[:, 1].tolist(),
+            "clearance_ratio_vs_demos": X[:, 2].tolist(),
         }
 
     said = []
-    out, Xc, per, _, record = U.train_retrying_warned(
-        train, figures, [0, 1, 2], 10, retrain=2, say=said.append
+    out, Xc, Xp, per, _, record = U.train_retrying_warned(
+        train, figures, [0, 1, 2, 3], 10, retrain=2, say=said.append
     )
-    assert calls == [[(0, 0), (1, 0), (2, 0)], [(1, 1), (2, 1)], [(2, 2)]]
-    np.testing.assert_array_equal(out["id"], [[0, 0], [1, 1], [2, 2]])
-    np.testing.assert_array_equal(Xc, [outcomes[0, 0], outcomes[1, 1], outcomes[2, 2]])
-    assert per["collision_rate"] == [0.0, 0.0, 0.0]
-    assert per["return_to_course_rate"] == [1.0, 0.95, 0.5]
-    assert [record[s]["kept"] for s in (0, 1, 2)] == [0, 1, 2]
-    assert [len(record[s]["attempts"]) for s in (0, 1, 2)] == [1, 2, 3]
+    assert calls == [
+        [(0, 0), (1, 0), (2, 0), (3, 0)],
+        [(1, 1), (2, 1), (3, 1)],
+        [(2, 2)],
+    ]
+    kept = [(0, 0), (1, 1), (2, 2), (3, 1)]
+    np.testing.assert_array_equal(out["id"], kept)
+    np.testing.assert_array_equal(Xc, [outcomes[k][0] for k in kept])
+    np.testing.assert_array_equal(Xp, [outcomes[k][1] for k in kept])
+    assert per["controllers"]["return_to_course_rate"] == [1.0, 0.95, 0.5, 1.0]
+    assert per["policy"]["clearance_ratio_vs_demos"] == [1.0, 1.0, 0.85, 0.95]
+    assert [record[s]["kept"] for s in (0, 1, 2, 3)] == [0, 1, 2, 1]
+    assert [len(record[s]["attempts"]) for s in (0, 1, 2, 3)] == [1, 2, 3, 2]
     assert record[1]["attempts"][0]["warning"] and not record[1]["attempts"][1]["warning"]
-    assert record[2]["attempts"][1]["collision_rate"] == 0.2
+    assert record[2]["attempts"][2]["collision_rate"] == 0.2
+    assert record[2]["attempts"][1]["policy"]["clearance_ratio_vs_demos"] == 0.8
+    first = record[3]["attempts"][0]["warning"]
+    assert "policy" in first and "0.85×" in first and "controllers" not in first
+    both = record[2]["attempts"][2]["warning"]
+    assert "controllers hit the pole" in both and "its policy" in both
     assert any("seed 2 (attempt 1)" in text for text in said)
     # The first attempt's key is PRNGKey(seed) (runs before retraining reproduce); retrain=0
-    # only warns.
+    # only warns; without a policy (Xp None) only the controllers are judged.
     np.testing.assert_array_equal(U.training_key(5), jax.random.PRNGKey(5))
     calls.clear()
     out, *_, record = U.train_retrying_warned(train, figures, [0, 1], 10, retrain=0)
     assert calls == [[(0, 0), (1, 0)]] and record[1]["kept"] == 0
     assert record[1]["attempts"][0]["warning"]
+
+    def train_without_policy(keys):
+        out, Xc, _ = train(keys)
+        return out, Xc, None
+
+    out, Xc, Xp, per, _, record = U.train_retrying_warned(
+        train_without_policy, figures, [3], 10, retrain=1
+    )
+    assert Xp is None and per["policy"] is None and record[3]["kept"] == 0
+    assert record[3]["attempts"][0] == {
+        "warning": None,
+        "collision_rate": 0.0,
+        "return_to_course_rate": 1.0,
+        "clearance_ratio_vs_demos": 1.0,
+        "policy": None,
+    }
+
+
+def test_policy_warnings_by_hand():
+    """The policy warns on hits, on clearance below 0.9× the demos', or off course at the end on
+    more than a tenth of its starts; its text joins the controllers' in one warning."""
+    figures = {
+        "collision_rate": [0.0, 0.05, 0.0, 0.0],
+        "return_to_course_rate": [1.0, 1.0, 1.0, 0.85],
+        "clearance_ratio_vs_demos": [0.9, 1.2, 0.89, 1.0],
+    }
+    warn = dict(U.policy_warnings([0, 1, 2, 3], figures, 20))
+    assert sorted(warn) == [1, 2, 3]
+    assert "hits the pole from 1 of the 20" in warn[1] and "passes" not in warn[1]
+    assert "passes at 0.89×" in warn[2] and "hits" not in warn[2]
+    assert "back on course from only 17" in warn[3]
+    controllers = {
+        "collision_rate": [0.1, 0.0, 0.0, 0.0],
+        "return_to_course_rate": [1.0] * 4,
+        "clearance_ratio_vs_demos": [1.0] * 4,
+    }
+    texts = U.training_warnings([0, 1, 2, 3], controllers, figures, 20)
+    assert sorted(texts) == [0, 1, 2, 3]
+    assert "controllers" in texts[0] and "policy" not in texts[0].split(";")[0][:20]
+    assert U.training_warnings([0, 1, 2, 3], controllers, None, 20).keys() == {0}
 
 
 @pytest.fixture(scope="module")
@@ -272,7 +328,7 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
         T_eval = config.task.horizon + config.eval_extra  # judged past the window
         assert run.tracks[name].shape == (1, 4, T_eval + 1, run.env.dX)
     assert run.summary["hull_identification"]["max_relative_error"] < 0.5
-    # One training seed, trained again at most once (retrain_warned=1) if its controllers warned;
+    # One training seed, trained again at most once (retrain_warned=1) if it warned;
     # the summary's warning is the kept attempt's.
     record = run.summary["rgcl"]["attempts"]["0"]
     assert len(record["attempts"]) in (1, 2) and record["kept"] < len(record["attempts"])
@@ -280,6 +336,11 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
     assert run.summary["rgcl"]["warnings"].get("0") == kept["warning"]
     per_seed = run.summary["rgcl"]["controllers_on_demo_starts"]["per_seed"]
     assert per_seed["collision_rate"] == [kept["collision_rate"]]
+    # ... and the policy was judged from the same starts, its figures the kept attempt's.
+    sails = run.summary["rgcl"]["policy_on_demo_starts"]
+    assert sails["episodes"] == run.summary["conditions"]
+    for key in U.ATTEMPT_FIGURES:
+        assert sails["per_seed"][key] == [kept["policy"][key]] and np.isfinite(kept["policy"][key])
     # Trained past the window: controllers [S, C, T, ...] over 180 steps, GCL's buffer over 160.
     assert run.summary["training_horizon"] == 180 == run.train_env.horizon
     assert run.rgcl_state.gps.controller.K.shape[2] == 180

@@ -121,8 +121,8 @@ def register(subparsers) -> None:
         type=int,
         default=None,
         help="train a seed again with a new key, at most N more times, while its local "
-        "controllers hit the pole or end off course on their own training starts (default 1, "
-        "with --fast 0)",
+        "controllers or its policy hit the pole, pass too close (the policy) or end off course "
+        "from their own training starts (default 1, with --fast 0)",
     )
     p.add_argument("--methods", default="rgcl,expert,bc", help="of rgcl, expert, bc")
     p.add_argument("--seeds", type=int, default=1)
