@@ -457,6 +457,17 @@ def per_seed_figures(env: UsvEnv, tracks, demo_clearance_m: float) -> dict:
 CONTROLLERS_ON_COURSE_WARN = 0.9  # warn below this share of controllers on course at the end
 
 
+def _seed_rows(seeds, per_seed: dict):
+    """(seed, hit rate, back on course, clearance ratio) per seed of :func:`per_seed_figures`."""
+    return zip(
+        seeds,
+        per_seed["collision_rate"],
+        per_seed["return_to_course_rate"],
+        per_seed["clearance_ratio_vs_demos"],
+        strict=True,
+    )
+
+
 def controller_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[int, str]]:
     """``(seed, text)`` for each training seed whose local controllers, on their own training
     starts (``per_seed``: :func:`per_seed_figures` of the controllers on the ``conditions`` demo
@@ -466,14 +477,7 @@ def controller_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[in
     and so did some whose policy was fine; the one diverged run of seeds 8–23 (seed 20; its
     policy circled, 0 % on course) had its controllers on course on none of their starts."""
     out = []
-    figures = zip(
-        seeds,
-        per_seed["collision_rate"],
-        per_seed["return_to_course_rate"],
-        per_seed["clearance_ratio_vs_demos"],
-        strict=True,
-    )
-    for seed, hit_rate, on_course, ratio in figures:
+    for seed, hit_rate, on_course, ratio in _seed_rows(seeds, per_seed):
         hits = round(hit_rate * conditions)
         signs = []
         if hits:
@@ -509,14 +513,7 @@ def policy_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[int, s
     its held-out figure, so none warned. Not complete either: tuning seed 7 hit the pole in 1 of
     64 held-out episodes with no sign on its training starts (docs/usv.md)."""
     out = []
-    figures = zip(
-        seeds,
-        per_seed["collision_rate"],
-        per_seed["return_to_course_rate"],
-        per_seed["clearance_ratio_vs_demos"],
-        strict=True,
-    )
-    for seed, hit_rate, on_course, ratio in figures:
+    for seed, hit_rate, on_course, ratio in _seed_rows(seeds, per_seed):
         signs = []
         hits = round(hit_rate * conditions)
         if hits:
