@@ -11,13 +11,11 @@ the cyclic garbage collector runs every 700 allocations and walks them all again
 took 9.3 s instead of 12.1 s, the whole warm run 21 s instead of 28 s
 (``experiments/bench_tracing.py``).
 
-XLA compiles those programs through LLVM, whose expensive passes (:data:`FAST_COMPILE_FLAG`) take
-a good part of the compile time and give back some speed in long runs. Without fast-math, LLVM
-keeps IEEE semantics (no reassociation), so turning them off changes no result
-(``tests/test_runtime.py``). Short runs that compile more than they compute — the tests, the
-``--fast`` runs — turn them off (``prepare_process(fast_compile=True)``): the USV ``--fast`` run
-took 167 s from an empty cache instead of 187 s, while the full USV run took 1106 s instead of
-1000 s (``experiments/bench_tracing.py`` measures the first).
+XLA compiles those programs through LLVM; its loop unrolling and vectorization passes
+(:data:`FAST_COMPILE_FLAG`) take a good part of the compile time and, on these programs, buy no
+speed. Without fast-math, LLVM keeps IEEE semantics (no reassociation), so the results do not
+change: :func:`prepare_process` turns them off (``experiments/bench_tracing.py`` checks the figures
+and measures the time).
 """
 
 from __future__ import annotations
@@ -114,14 +112,10 @@ def relax_garbage_collection() -> None:
     gc.set_threshold(*GC_THRESHOLDS)
 
 
-def prepare_process(
-    cache_dir: str | os.PathLike | None = None, *, fast_compile: bool = False
-) -> Path:
+def prepare_process(cache_dir: str | os.PathLike | None = None) -> Path:
     """What every entry point (CLI, experiments, tests) sets before it traces anything: JAX's
     persistent compilation cache (:func:`enable_compilation_cache`, returns its directory),
-    :func:`relax_garbage_collection` and, with ``fast_compile`` (for short runs: tests,
-    ``--fast``), :func:`set_fast_compile`, which must come before JAX starts."""
+    :func:`relax_garbage_collection` and, if JAX has not started yet, :func:`set_fast_compile`."""
     relax_garbage_collection()
-    if fast_compile:
-        set_fast_compile()
+    set_fast_compile()
     return enable_compilation_cache(cache_dir)

@@ -7,9 +7,9 @@ Settings, side by side: ``reference`` — Python's default garbage-collector thr
 ``hull_step`` traced afresh at every call (as before); ``jitted hull_step`` — ``hull_step`` a
 jitted function, so that JAX traces it once per shape and reuses its batched and differentiated
 forms; ``+ relaxed GC`` — also :func:`diffgcl.runtime.relax_garbage_collection`; ``+ fast
-compile`` — also LLVM's expensive passes off (:func:`diffgcl.runtime.set_fast_compile`), as the
-tests and the ``--fast`` runs do; the others run with ``--xla_llvm_disable_expensive_passes=false``
-in ``XLA_FLAGS``. Seconds are summed over all programs from JAX's monitoring events: tracing
+compile`` — also LLVM's expensive passes off (:func:`diffgcl.runtime.set_fast_compile`). The last
+is what every entry point now does; the others run with ``--xla_llvm_disable_expensive_passes=
+false`` in ``XLA_FLAGS``. Seconds are summed over all programs from JAX's monitoring events: tracing
 (Python → jaxpr), lowering (jaxpr → MLIR), XLA compiling; ``wall`` is the whole run. Each
 setting must reproduce the reference's figures exactly (checked)::
 

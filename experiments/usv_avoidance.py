@@ -178,7 +178,7 @@ def main(argv=None) -> int:
 
     from diffgcl.runtime import prepare_process
 
-    prepare_process(fast_compile=args.fast)  # the radar process inherits XLA_FLAGS
+    prepare_process()
 
     from diffgcl.algorithms.presets import usv as usv_preset
     from diffgcl.algorithms.presets import with_overrides

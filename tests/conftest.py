@@ -7,4 +7,4 @@ jax.config.update("jax_enable_x64", True)
 
 from diffgcl.runtime import prepare_process  # noqa: E402
 
-prepare_process(fast_compile=True)  # the tests compile more than they compute
+prepare_process()

@@ -1,6 +1,5 @@
-"""Process settings of the entry points (``diffgcl.runtime.prepare_process``): LLVM's expensive
-passes off on request (``fast_compile``) unless the user's ``XLA_FLAGS`` say otherwise, and
-bit-identical results with them off."""
+"""Process settings of every entry point (``diffgcl.runtime.prepare_process``): LLVM's expensive
+passes off unless the user says otherwise, and bit-identical results with them off."""
 
 from __future__ import annotations
 
@@ -13,7 +12,7 @@ FLAG_SCRIPT = textwrap.dedent(
     """
     import os, sys
     from diffgcl.runtime import prepare_process, set_fast_compile
-    prepare_process(sys.argv[1], fast_compile=True)
+    prepare_process(sys.argv[1])
     import jax
     jax.numpy.ones(2).block_until_ready()  # JAX has started: too late for XLA_FLAGS
     assert not set_fast_compile()
@@ -65,7 +64,7 @@ def _python(script: str, cache: str, xla_flags: str | None) -> str:
     return out.stdout
 
 
-def test_fast_compile_turns_off_llvm_expensive_passes_unless_the_user_set_them(tmp_path):
+def test_prepare_process_turns_off_llvm_expensive_passes_unless_the_user_set_them(tmp_path):
     cache = str(tmp_path / "jax")
     out = _python(FLAG_SCRIPT, cache, None)
     assert "XLA_FLAGS=--xla_llvm_disable_expensive_passes=true\n" in out

@@ -127,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
         apply_devices_option(args)
     else:
         set_cpu_devices()  # seed batches are sharded over the cores
-    prepare_process(fast_compile=getattr(args, "fast", False))  # --fast: compiling dominates
+    prepare_process()
     return int(args.func(args) or 0)
 
 
