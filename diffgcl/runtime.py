@@ -10,12 +10,6 @@ the cyclic garbage collector runs every 700 allocations and walks them all again
 :func:`relax_garbage_collection` raises the thresholds: tracing the USV ``--fast`` run's programs
 took 9.3 s instead of 12.1 s, the whole warm run 21 s instead of 28 s
 (``experiments/bench_tracing.py``).
-
-XLA compiles those programs through LLVM; its loop unrolling and vectorization passes
-(:data:`FAST_COMPILE_FLAG`) take a good part of the compile time and, on these programs, buy no
-speed. Without fast-math, LLVM keeps IEEE semantics (no reassociation), so the results do not
-change: :func:`prepare_process` turns them off (``experiments/bench_tracing.py`` checks the figures
-and measures the time).
 """
 
 from __future__ import annotations
@@ -33,29 +27,6 @@ def cache_root() -> Path:
 
 
 HOST_DEVICE_FLAG = "--xla_force_host_platform_device_count"
-FAST_COMPILE_FLAG = "--xla_llvm_disable_expensive_passes"
-
-
-def backends_started() -> bool:
-    """Whether JAX's backends have started (the first computation or ``jax.devices()``): from then
-    on ``XLA_FLAGS`` is no longer read."""
-    try:  # private API: if it moves, assume JAX has not started (a flag is then simply unused)
-        from jax._src import xla_bridge
-
-        return bool(xla_bridge.backends_are_initialized())
-    except (ImportError, AttributeError):
-        return False
-
-
-def add_xla_flag(flag: str, value) -> bool:
-    """Append ``flag=value`` to ``XLA_FLAGS``, unless ``XLA_FLAGS`` already names the flag (the
-    user's setting wins) or JAX has started (:func:`backends_started`). Returns whether it took
-    effect."""
-    flags = os.environ.get("XLA_FLAGS", "")
-    if flag in flags or backends_started():
-        return False
-    os.environ["XLA_FLAGS"] = f"{flags} {flag}={value}".strip()
-    return True
 
 
 def set_cpu_devices(n: int | None = None) -> bool:
@@ -65,14 +36,18 @@ def set_cpu_devices(n: int | None = None) -> bool:
     device count already given in ``XLA_FLAGS`` alone. Returns whether the setting took effect.
     Accelerators are unaffected: the flag only splits the host platform.
     """
-    return add_xla_flag(HOST_DEVICE_FLAG, (os.cpu_count() or 1) if n is None else n)
+    try:  # private API: if it moves, assume JAX has not started (the flag is then simply unused)
+        from jax._src import xla_bridge
 
-
-def set_fast_compile() -> bool:
-    """Turn off LLVM's expensive passes in XLA's compiler (:data:`FAST_COMPILE_FLAG`), before JAX
-    starts. ``XLA_FLAGS="--xla_llvm_disable_expensive_passes=false"`` keeps them. Returns whether
-    the setting took effect."""
-    return add_xla_flag(FAST_COMPILE_FLAG, "true")
+        started = xla_bridge.backends_are_initialized()
+    except (ImportError, AttributeError):
+        started = False
+    flags = os.environ.get("XLA_FLAGS", "")
+    if HOST_DEVICE_FLAG in flags or started:
+        return False
+    n = (os.cpu_count() or 1) if n is None else n
+    os.environ["XLA_FLAGS"] = f"{flags} {HOST_DEVICE_FLAG}={n}".strip()
+    return True
 
 
 def add_devices_option(parser) -> None:
@@ -114,8 +89,7 @@ def relax_garbage_collection() -> None:
 
 def prepare_process(cache_dir: str | os.PathLike | None = None) -> Path:
     """What every entry point (CLI, experiments, tests) sets before it traces anything: JAX's
-    persistent compilation cache (:func:`enable_compilation_cache`, returns its directory),
-    :func:`relax_garbage_collection` and, if JAX has not started yet, :func:`set_fast_compile`."""
+    persistent compilation cache (:func:`enable_compilation_cache`, returns its directory) and
+    :func:`relax_garbage_collection`."""
     relax_garbage_collection()
-    set_fast_compile()
     return enable_compilation_cache(cache_dir)

@@ -1,4 +1,4 @@
-"""Where a training run's first minutes go, and what three settings save: tracing and compiling the
+"""Where a training run's first minutes go, and what two settings save: tracing and compiling the
 USV ``--fast`` rGCL + MDGPS run (main run only: identification, training, evaluation), each
 setting in a fresh process, first with an empty compile cache (cold), then again with the cache
 it filled (warm).
@@ -6,10 +6,8 @@ it filled (warm).
 Settings, side by side: ``reference`` — Python's default garbage-collector thresholds and
 ``hull_step`` traced afresh at every call (as before); ``jitted hull_step`` — ``hull_step`` a
 jitted function, so that JAX traces it once per shape and reuses its batched and differentiated
-forms; ``+ relaxed GC`` — also :func:`diffgcl.runtime.relax_garbage_collection`; ``+ fast
-compile`` — also LLVM's expensive passes off (:func:`diffgcl.runtime.set_fast_compile`). The last
-is what every entry point now does; the others run with ``--xla_llvm_disable_expensive_passes=
-false`` in ``XLA_FLAGS``. Seconds are summed over all programs from JAX's monitoring events: tracing
+forms; ``+ relaxed GC`` — also :func:`diffgcl.runtime.relax_garbage_collection` (what every entry
+point now does). Seconds are summed over all programs from JAX's monitoring events: tracing
 (Python → jaxpr), lowering (jaxpr → MLIR), XLA compiling; ``wall`` is the whole run. Each
 setting must reproduce the reference's figures exactly (checked)::
 
@@ -20,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import subprocess
 import sys
 import tempfile
@@ -28,10 +25,9 @@ import time
 from pathlib import Path
 
 SETTINGS = {
-    "reference": {"jit_hull_step": False, "relax_gc": False, "fast_compile": False},
-    "jitted hull_step": {"jit_hull_step": True, "relax_gc": False, "fast_compile": False},
-    "+ relaxed GC": {"jit_hull_step": True, "relax_gc": True, "fast_compile": False},
-    "+ fast compile": {"jit_hull_step": True, "relax_gc": True, "fast_compile": True},
+    "reference": {"jit_hull_step": False, "relax_gc": False},
+    "jitted hull_step": {"jit_hull_step": True, "relax_gc": False},
+    "+ relaxed GC": {"jit_hull_step": True, "relax_gc": True},
 }
 EVENTS = {
     "/jax/core/compile/jaxpr_trace_duration": "trace_s",
@@ -83,14 +79,8 @@ def worker(setting: str, cache: str) -> dict:
 
 
 def run_worker(setting: str, cache: str) -> dict:
-    from diffgcl.runtime import FAST_COMPILE_FLAG
-
-    env = dict(os.environ)
-    fast = "true" if SETTINGS[setting]["fast_compile"] else "false"
-    env["XLA_FLAGS"] = f"{env.get('XLA_FLAGS', '')} {FAST_COMPILE_FLAG}={fast}".strip()
     out = subprocess.run(
         [sys.executable, __file__, "--worker", setting, "--cache", cache],
-        env=env,
         check=True,
         capture_output=True,
         text=True,
