@@ -454,7 +454,7 @@ def per_seed_figures(env: UsvEnv, tracks, demo_clearance_m: float) -> dict:
     }
 
 
-CONTROLLERS_ON_COURSE_WARN = 0.9  # warn below this share of controllers on course at the end
+ON_COURSE_WARN = 0.9  # warn below this share of training starts back on course at the end
 
 
 def _seed_rows(seeds, per_seed: dict):
@@ -472,7 +472,7 @@ def controller_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[in
     """``(seed, text)`` for each training seed whose local controllers, on their own training
     starts (``per_seed``: :func:`per_seed_figures` of the controllers on the ``conditions`` demo
     starts), hit the pole on some, or are back on course at the end on fewer than
-    :data:`CONTROLLERS_ON_COURSE_WARN` of them. Warning signs, not verdicts (docs/usv.md):
+    :data:`ON_COURSE_WARN` of them. Warning signs, not verdicts (docs/usv.md):
     every run whose policy passed at 0.55–0.75× the demos' clearance and hit the pole had hits,
     and so did some whose policy was fine; the one diverged run of seeds 8–23 (seed 20; its
     policy circled, 0 % on course) had its controllers on course on none of their starts."""
@@ -482,7 +482,7 @@ def controller_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[in
         signs = []
         if hits:
             signs.append(f"hit the pole on {hits} of their {conditions} training starts")
-        if on_course < CONTROLLERS_ON_COURSE_WARN:
+        if on_course < ON_COURSE_WARN:
             back = round(on_course * conditions)
             signs.append(f"are back on course at the end on only {back} of {conditions}")
         if signs:
@@ -506,7 +506,7 @@ def policy_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[int, s
     training starts (``per_seed``: :func:`per_seed_figures` of its tracks on the identified hull,
     sensor noise on: training data only), hits the pole on some, passes below
     :data:`POLICY_CLEARANCE_WARN` × the demos' median clearance, or is back on course at the end
-    on fewer than :data:`CONTROLLERS_ON_COURSE_WARN` of them. The policy is what sails, and it
+    on fewer than :data:`ON_COURSE_WARN` of them. The policy is what sails, and it
     can pass closer than its controllers: on stop 27's headline, seed 0's controllers passed at
     0.99×, its policy at 0.85× from the same starts and 0.70× held out (2 % collisions); on the
     tuning seeds 0–7 (stop 28) it passed at 1.01–1.12× from the training starts, within 0.07 of
@@ -522,7 +522,7 @@ def policy_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[int, s
             signs.append(
                 f"passes at {ratio:.2f}× the demos' clearance (below {POLICY_CLEARANCE_WARN}×)"
             )
-        if on_course < CONTROLLERS_ON_COURSE_WARN:
+        if on_course < ON_COURSE_WARN:
             signs.append(f"is back on course from only {round(on_course * conditions)}")
         if signs:
             out.append(
