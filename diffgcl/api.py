@@ -37,7 +37,6 @@ it adds success rates and true costs for both.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import json
 import os
 from collections.abc import Callable, Sequence
@@ -202,16 +201,12 @@ class LearnedRun:
         x0 = self.env.initial_states() if x0 is None else jnp.atleast_2d(jnp.asarray(x0))
         if x0.ndim != 2 or x0.shape[1] != self.env.dX:
             raise ValueError(f"policy_rollout: x0 must be [B, {self.env.dX}], got {x0.shape}")
+        from diffgcl.algorithms.mdgps import policy_noise_free_rollouts
+
         params = jax.tree.map(jnp.asarray, self.result.state.policy.params)
-        traj = self._policy_program(params, x0.astype(self.env.x0.dtype))
+        x0 = x0.astype(self.env.x0.dtype)
+        traj = policy_noise_free_rollouts(self.config.policy, self.env, params, x0)
         return traj.X, traj.U
-
-    @functools.cached_property
-    def _policy_program(self):
-        from diffgcl.eval.policy import policy_rollouts
-
-        policy, env = self.policy(), self.env
-        return jax.jit(jax.vmap(lambda p, x: policy_rollouts(env, policy, p, x), (0, None)))
 
     def policy(self):
         """The :class:`~diffgcl.policies.network.GaussianPolicy` (parameters: the run's
@@ -227,20 +222,8 @@ class LearnedRun:
 
     def controller_rollouts(self) -> tuple[Array, Array]:
         """Every seed's final local controllers from their conditions, noise-free: X [S, C, T+1,
-        dX], U [S, C, T, dU] (one compiled program per run)."""
-        return self._controller_program(jax.tree.map(jnp.asarray, self.controllers))
-
-    @functools.cached_property
-    def _controller_program(self):
-        from diffgcl.algorithms.rgcl import final_rollouts
-
-        env = self.env
-
-        def one(ctrl):
-            X = final_rollouts(env, ctrl)
-            return X, _controller_actions(ctrl, X)
-
-        return jax.jit(jax.vmap(one))
+        dX], U [S, C, T, dU] (the env's staged simulator, shared with the training's programs)."""
+        return _noise_free(self.env, self.controllers)
 
     def report(self, *, reoptimise: bool = True) -> dict:
         """The run's report (module docstring), computed once."""
@@ -299,6 +282,17 @@ class LearnedRun:
         (out / "run.json").write_text(json.dumps(meta, indent=1))
         plots.learning_curves(self.result.metrics, out / "learning_curves.png", title=env.name)
         return out
+
+
+def _noise_free(env, controllers):
+    """Noise-free rollouts of controllers [S, C, ...] from the env's conditions."""
+    from diffgcl.algorithms.staged import noise_free_rollouts
+
+    ctrl = jax.tree.map(jnp.asarray, controllers)
+    S = ctrl.K.shape[0]
+    x0 = jnp.broadcast_to(jnp.asarray(env.initial_states()), (S, *env.initial_states().shape))
+    X, U = noise_free_rollouts(env, ctrl, x0)
+    return jnp.asarray(X), jnp.asarray(U)
 
 
 def _controller_actions(ctrl, X):
@@ -383,7 +377,7 @@ def learn(
 
 def _report(run: LearnedRun, reoptimise: bool) -> dict:
     """See :meth:`LearnedRun.report`."""
-    from diffgcl.algorithms.rgcl import make_reoptimise
+    from diffgcl.algorithms.rgcl import reoptimise_seeds
     from diffgcl.control.lqr import controller_entropy
     from diffgcl.costs.demo_controller import fit_demo_controller
     from diffgcl.costs.expansion import trajectory_cost
@@ -453,10 +447,9 @@ def _report(run: LearnedRun, reoptimise: bool) -> dict:
     if run.has_policy:
         report["policy"] = _policy_report(run, demo_X, scale)
     if reoptimise:
-        reopt = make_reoptimise(config, env, network)
         keys = jnp.stack([jax.random.PRNGKey(100_000 + s) for s in run.seeds])
-        state, _ = jax.jit(jax.vmap(reopt))(keys, params)
-        re_X, re_U = run._controller_program(state.controller)
+        state, _, _ = reoptimise_seeds(config, env, network, params, keys)
+        re_X, re_U = _noise_free(env, state.controller)
         re_dist = jax.vmap(
             lambda X: jnp.stack([demo_distance(X[c], demo_X[c], scale) for c in range(C)])
         )(re_X)

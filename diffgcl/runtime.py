@@ -93,3 +93,38 @@ def prepare_process(cache_dir: str | os.PathLike | None = None) -> Path:
     :func:`relax_garbage_collection`."""
     relax_garbage_collection()
     return enable_compilation_cache(cache_dir)
+
+
+COMPILE_EVENTS = (
+    "/jax/core/compile/jaxpr_trace_duration",
+    "/jax/core/compile/jaxpr_to_mlir_module_duration",
+    "/jax/core/compile/backend_compile_duration",
+)
+
+
+class CompileClock:
+    """Seconds JAX spent tracing, lowering and compiling while the ``with`` block ran (from
+    JAX's monitoring events; a compile served by the persistent cache counts its retrieval):
+    ``with CompileClock() as clock: ...; clock.seconds``."""
+
+    def __init__(self):
+        self.seconds = 0.0
+        self._active = False
+
+    def _listen(self, event: str, duration: float, **_) -> None:
+        if self._active and event in COMPILE_EVENTS:
+            self.seconds += duration
+
+    def __enter__(self) -> CompileClock:
+        self._active = True
+        jax.monitoring.register_event_duration_secs_listener(self._listen)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._active = False
+        try:  # not public API; without it the silenced listener stays registered
+            from jax._src import monitoring
+
+            monitoring.unregister_event_duration_listener(self._listen)
+        except (ImportError, AttributeError, AssertionError, ValueError):
+            pass

@@ -147,7 +147,7 @@ def expert_demos(task: Task, path: Path, *, seeds, demos_per_condition: int) -> 
     t0 = time.perf_counter()
     result = run_seeds(task.expert, env, task.cost, seeds, chunk=len(seeds))
     m = result["metrics"]
-    final = np.asarray(m.success[:, -1]).all(-1)
+    final = np.asarray(result["final_success"]).all(-1)
     if not final.any():
         raise RuntimeError(f"{task.mjcf}: no expert seed succeeded")
     final_cost = np.asarray(m.cost[:, -1]).sum(-1)

@@ -82,7 +82,7 @@ def expert_demos(env, seeds=range(8), iterations: int = 30):
         return DemoSet.load(folder)
     seeds = list(seeds)
     result = run_seeds(GPSConfig(iterations=iterations), env, env.expert_cost, seeds, chunk=8)
-    final = np.all(result["metrics"].success[:, -1], axis=-1)
+    final = np.all(result["final_success"], axis=-1)
     if not final.any():
         raise RuntimeError("no GPS expert seed succeeded on all four training starts")
     cost = np.asarray(result["metrics"].cost[:, -1]).sum(-1)
@@ -215,7 +215,7 @@ def main(argv=None) -> int:
 
         env_h = make_env("arm", x0=heldout)
         res = run_seeds(GPSConfig(iterations=30), env_h, env_h.expert_cost, seeds[:4], chunk=4)
-        ok = np.asarray(res["metrics"].success[:, -1])  # [seeds, B]
+        ok = np.asarray(res["final_success"])  # [seeds, B]
         summary["expert_success_heldout"] = float(ok.mean())
         summary["expert_heldout_feasible"] = ok.any(axis=0).tolist()
         print(f"  expert (GPS trained on each held-out start): success {ok.mean():.3f}")
@@ -250,7 +250,10 @@ def main(argv=None) -> int:
         policy = rgcl.policy_phases.policy
         params = jax.tree.map(jnp.asarray, state.policy.params)
         result = evaluate(env, policy, params, x0_sets, eval_key, args.noisy_samples)
-        ctrl_success = np.asarray(m.gps.success[:, -1, -1]).mean()
+        from diffgcl.algorithms.staged import noise_free_rollouts
+
+        X, _ = noise_free_rollouts(env, state.gps.controller, jnp.asarray(state.gps.x0))
+        ctrl_success = np.asarray(jax.vmap(jax.vmap(env.success))(jnp.asarray(X))).mean()
         summary["rgcl_compile_seconds"] = c_s
         summary["rgcl_batch_seconds"] = r_s
         summary["rgcl_controller_success_train"] = float(ctrl_success)

@@ -148,11 +148,11 @@ def task_fingerprint(env: Env) -> dict:
     return spec
 
 
-def best_expert(metrics) -> int | None:
+def best_expert(metrics, final_success) -> int | None:
     """The run (index into the leading seed axis of GPS ``metrics`` [S, iterations, C]) whose
-    final controllers succeed on every condition with the lowest final true cost; None when no
-    run succeeds."""
-    final = np.all(np.asarray(metrics.success)[:, -1], axis=-1)
+    final controllers succeed on every condition (``final_success: [S, C]``, their noise-free
+    rollouts) with the lowest final true cost; None when no run succeeds."""
+    final = np.all(np.asarray(final_success), axis=-1)
     if not final.any():
         return None
     final_cost = np.asarray(metrics.cost)[:, -1].sum(axis=-1)
@@ -206,7 +206,7 @@ def builtin_demos(env=None, *, num_demos: int = 10, seed: int = 0, verbose: bool
         print(f"generating expert demos (GPS on the expert cost) for this task into {folder}")
     seeds = key["expert"]["seeds"]
     result = run_seeds(config, env, env.expert_cost, seeds, chunk=EXPERT_SEEDS)
-    i = best_expert(result["metrics"])
+    i = best_expert(result["metrics"], result["final_success"])
     if i is None:
         raise RuntimeError(
             f"builtin_demos: no GPS expert seed of {seeds} succeeded on this task "

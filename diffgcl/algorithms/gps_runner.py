@@ -5,9 +5,13 @@ compilation separately from execution), run seeds in chunks, and turn the metric
 JSON-ready summaries. Used by the ``diffgcl gps`` / ``diffgcl demos`` commands, the built-in
 expert demos and ``experiments/arm_gps.py``.
 
+The iterations run as a staged loop (:func:`diffgcl.algorithms.staged.run_gps_seeds`): the
+simulator's programs are compiled once per env and shared with every other run of the process.
+
 Definitions used in the summaries: a seed *succeeds* when the noise-free rollout of its final
 controllers (after the last iteration's C-step) succeeds on every condition; its *first success*
-is the 1-based iteration after whose C-step that first happened.
+is the 1-based iteration after whose C-step that first happened (the metrics describe the
+controller before each C-step, the final rollout the one after the last).
 """
 
 from __future__ import annotations
@@ -26,39 +30,50 @@ def run_seeds(config: GPSConfig, env, cost, seeds, *, chunk: int = 32) -> dict:
     """Train one GPS run per seed (vmapped in chunks of ``chunk``).
 
     Returns a dict with ``state`` and ``metrics`` (NumPy pytrees, leading axis seeds; metrics
-    [seeds, iterations, C]), ``compile_seconds`` (lower + compile of one chunk) and
-    ``run_seconds`` (execution of all chunks after compilation).
+    [seeds, iterations, C]), ``final_success`` [seeds, C] (the final controllers' noise-free
+    rollouts), ``compile_seconds`` (tracing and compiling) and ``run_seconds`` (the rest).
     """
+    from diffgcl.algorithms.staged import run_gps_seeds
+    from diffgcl.runtime import CompileClock
+
     gps = make_gps(config, env, cost)
     keys = jnp.stack([jax.random.PRNGKey(int(s)) for s in seeds])
     size = min(chunk, len(seeds))
     pad = (-len(seeds)) % size
     keys_padded = jnp.concatenate([keys, keys[:pad]]) if pad else keys
+    states, metrics, finals = [], [], []
     t0 = time.perf_counter()
-    compiled = jax.jit(jax.vmap(gps.train)).lower(keys_padded[:size]).compile()
-    compile_seconds = time.perf_counter() - t0
-    states, metrics = [], []
-    t0 = time.perf_counter()
-    for i in range(0, keys_padded.shape[0], size):
-        state, m = compiled(keys_padded[i : i + size])
-        jax.block_until_ready(m)
-        states.append(state)
-        metrics.append(m)
-    run_seconds = time.perf_counter() - t0
+    with CompileClock() as clock:
+        for i in range(0, keys_padded.shape[0], size):
+            state, m, X = run_gps_seeds(gps, keys_padded[i : i + size], config.iterations, env)
+            states.append(state)
+            metrics.append(m)
+            finals.append(np.asarray(jax.vmap(jax.vmap(env.success))(jnp.asarray(X))))
+    wall = time.perf_counter() - t0
     cat = lambda *a: np.concatenate([np.asarray(x) for x in a])[: len(seeds)]
     return {
         "state": jax.tree.map(cat, *states),
         "metrics": jax.tree.map(cat, *metrics),
-        "compile_seconds": compile_seconds,
-        "run_seconds": run_seconds,
+        "final_success": cat(*finals),
+        "compile_seconds": clock.seconds,
+        "run_seconds": wall - clock.seconds,
     }
+
+
+def success_after_c_steps(metrics_success, final_success) -> np.ndarray:
+    """[..., iterations, C]: whether the controller after each iteration's C-step succeeds —
+    the metrics' (which describe the controller before it) shifted by one, the final rollout's
+    last."""
+    m = np.asarray(metrics_success)
+    return np.concatenate([m[..., 1:, :], np.asarray(final_success)[..., None, :]], axis=-2)
 
 
 def summarise(result: dict, seeds, config: GPSConfig) -> dict:
     """JSON-ready summary of :func:`run_seeds` (see the module docstring for definitions)."""
     m = result["metrics"]
-    final = np.all(m.success[:, -1], axis=-1)
-    first = np.asarray(first_success(jnp.asarray(m.success)))
+    final = np.all(result["final_success"], axis=-1)
+    after = success_after_c_steps(m.success, result["final_success"])
+    first = np.asarray(first_success(jnp.asarray(after)))
     reached = first >= 0
     n = len(seeds)
     return {
@@ -103,11 +118,6 @@ def report_failures(metrics, seeds) -> list[str]:
 
 def mean_rollout(env, controllers, x0):
     """Noise-free rollouts of controllers [C, T, ...] from x0 [C, dX] -> X [C, T+1, dX]."""
-    from diffgcl.sim.rollout import rollout_controller
+    from diffgcl.algorithms.staged import noise_free_rollouts
 
-    T = controllers.K.shape[-3]
-
-    def one(ctrl, x):
-        return rollout_controller(env, ctrl, x, jnp.zeros((T, env.dU), x.dtype)).X
-
-    return jax.jit(jax.vmap(one))(controllers, x0)
+    return jnp.asarray(noise_free_rollouts(env, controllers, jnp.asarray(x0))[0])

@@ -4,11 +4,12 @@
 One iteration, for every condition at once:
 
 1. sample N trajectories per condition — from the local controllers (off-policy, GPS's default) or
-   from the global policy itself (``sample_on_policy``) — and fit linear-Gaussian dynamics;
+   from the global policy itself (``sample_on_policy``) — and fit linear-Gaussian dynamics; roll
+   the policy out noise-free from each condition's start (its success metric);
 2. record what the policy would observe at the sample states (``env.obs``, with sensor noise
-   when ``obs_noise``);
-3. linearise the global policy around the samples by autodiff of ``μ_θ(o(x))``
-   (:func:`diffgcl.policies.mdgps.linearise_policy`);
+   when ``obs_noise``), and the noise-free observations with their Jacobians ``∂o/∂x``;
+3. linearise the global policy around the samples: ``∂μ_θ(o(x))/∂x = ∂μ_θ/∂o · ∂o/∂x``
+   (:func:`diffgcl.policies.mdgps.linearise_policy_at`);
 4. expand the cost, adapt the step size — *one* step for all conditions, from the Laplace cost of
    the previous policy linearisation, of the controllers the last C-step predicted, and of the
    current policy linearisation (GPS's MDGPS ``_stepadjust``);
@@ -16,10 +17,17 @@ One iteration, for every condition at once:
 6. S-step: regress the policy onto the new controllers at the sample states, weighted by their
    precision (:mod:`diffgcl.policies.mdgps`).
 
+Steps 1–2 are the simulator's (:class:`diffgcl.sim.simulator.Simulator`, all of an iteration's
+rollouts in one batched call), the rest is pure maths on what it returned. The policy's metrics
+describe the policy that was in effect during the iteration (before its S-step), as GPS's
+metrics describe the controller that drew the samples.
+
 :func:`make_policy_phases` builds steps 1–3, 6 and the policy evaluation for an env; the rGCL
 schedules (:mod:`diffgcl.algorithms.rgcl`) compose them with the cost updates the same way this
 module composes them with a fixed cost. :func:`make_mdgps` returns pure ``init``, ``iteration``
-and ``train(key, hparams=None)``; ``jax.jit(jax.vmap(train))`` runs a seed sweep.
+and ``train(key, hparams=None)`` (and the iteration's ``draw`` / ``simulate`` / ``update``
+parts for a host loop, :mod:`diffgcl.algorithms.staged`); ``jax.jit(jax.vmap(train))`` runs a
+seed sweep.
 
 The policy's observation normaliser is fitted once, when the state is created: from given
 observations (e.g. the demonstrations') or else from the initial controllers' samples, as GPS
@@ -41,8 +49,8 @@ from diffgcl.algorithms.gps import (
     GPSConfig,
     GPSHyperparams,
     GPSMetrics,
-    GPSSamples,
     GPSState,
+    SampleRequest,
     make_gps_phases,
 )
 from diffgcl.costs.expansion import trajectory_cost
@@ -51,11 +59,12 @@ from diffgcl.policies.mdgps import (
     SStepConfig,
     SStepMetrics,
     controller_targets,
-    linearise_policy,
+    linearise_policy_at,
     make_policy_learner,
 )
 from diffgcl.policies.network import GaussianPolicy, PolicyConfig, fit_obs_normaliser
-from diffgcl.sim.rollout import sample_controller, sample_observed
+from diffgcl.sim.rollout import smooth_noise
+from diffgcl.sim.simulator import Simulator
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey, Trajectory
 
 
@@ -80,34 +89,63 @@ class PolicySettings:
 
 @struct.dataclass
 class PolicyMetrics:
-    """Per iteration: success / cost: [C] success and true cost of the policy's noise-free
-    rollout from each training condition; s_step: :class:`SStepMetrics`."""
+    """Per iteration: success / cost: [C] success and true cost of the noise-free rollout, from
+    each training condition, of the policy in effect during the iteration (before its S-step);
+    s_step: :class:`SStepMetrics` of the iteration's S-step."""
 
     success: Array
     cost: Array
     s_step: SStepMetrics
 
 
+@struct.dataclass
+class PolicyRequest:
+    """What the global policy asks the simulator for, C conditions: its params, rolled out from
+    x0: [C, dX] — ``n`` times with its action noise ``noise: [C, n, T, dU]`` (sensor noise from
+    ``obs_key: [C, n, 2]`` when the settings say so, else None) and once noise-free."""
+
+    params: object
+    x0: Array
+    noise: Array
+    obs_key: Array | None = None
+
+
+@struct.dataclass
+class SimulatedPolicy:
+    """The simulator's answer to a :class:`PolicyRequest`: samples [C, n] (None when n = 0) and
+    mean [C] (the noise-free rollouts) as :class:`~diffgcl.types.Trajectory`."""
+
+    samples: Trajectory | None
+    mean: Trajectory
+
+
 class PolicyPhases(NamedTuple):
     """The policy's part of an iteration on an env (pure; C conditions at once).
 
     init(key, O=None) -> PolicyState (normaliser from observations ``O: [..., dO]``, else from
-    the initial controllers' samples); sample(state, key) -> (X [C, N, T+1, dX], U [C, N, T, dU])
-    with the policy's noise; observe(X, key) -> O [C, N, T+1, dO]; linearise(state, X) ->
-    LinearGaussianController [C]; s_step(state, key, X, O, controllers) -> (PolicyState,
-    SStepMetrics); rollouts(state, x0) -> Trajectory [B] noise-free from starts ``x0: [B, dX]``;
-    metrics(state, s_step_metrics) -> PolicyMetrics on the training conditions; policy: the
-    :class:`GaussianPolicy`.
+    the initial controllers' samples); draw(state, key, n) -> PolicyRequest (n noisy rollouts per
+    condition and the noise-free one); simulate(sim, request) -> SimulatedPolicy;
+    observe(sim, X, key) -> O [C, N, T+1, dO] (sensor noise with ``obs_noise``); observe_at(sim,
+    X) -> (O [C, N, T, dO], J [C, N, T, dO, dX]) noise-free observations and their Jacobians at
+    the states 0 .. T−1; linearise(state, O, J, X) -> LinearGaussianController [C];
+    s_step(state, key, X, O, controllers) -> (PolicyState, SStepMetrics); rollouts(state, x0) ->
+    Trajectory [B] noise-free from starts ``x0: [B, dX]``; metrics(mean, s_step_metrics) ->
+    PolicyMetrics from the noise-free rollouts ``mean`` [C]; policy: the :class:`GaussianPolicy`;
+    act(params, o, eps): its action; name: what tells its simulator programs apart.
     """
 
     init: Callable[..., PolicyState]
-    sample: Callable[[PolicyState, PRNGKey], tuple[Array, Array]]
-    observe: Callable[[Array, PRNGKey], Array]
-    linearise: Callable[[PolicyState, Array], LinearGaussianController]
+    draw: Callable[..., PolicyRequest]
+    simulate: Callable[..., SimulatedPolicy]
+    observe: Callable[..., Array]
+    observe_at: Callable[..., tuple[Array, Array]]
+    linearise: Callable[..., LinearGaussianController]
     s_step: Callable[..., tuple[PolicyState, SStepMetrics]]
     rollouts: Callable[[PolicyState, Array], Trajectory]
-    metrics: Callable[[PolicyState, SStepMetrics], PolicyMetrics]
+    metrics: Callable[[Trajectory, SStepMetrics], PolicyMetrics]
     policy: GaussianPolicy
+    act: Callable
+    name: tuple
 
 
 def make_policy(settings: PolicySettings, env: Env) -> GaussianPolicy:
@@ -134,6 +172,31 @@ def condition_weights(cost: Array | None, ratio: float | None, C: int, dtype) ->
     return keep.astype(dtype)
 
 
+def policy_actor(settings: PolicySettings, env: Env) -> tuple[Callable, tuple]:
+    """``(act, name)``: the policy's action ``act(params, o, eps)`` and the name its simulator
+    programs go by (the same for every policy of these settings on this env)."""
+    policy = make_policy(settings, env)
+
+    def act(params, o, eps):
+        return policy.sample_action(params, o, eps)
+
+    dtype = jnp.asarray(env.initial_states()).dtype
+    return act, ("policy", settings.network, env.dO, env.dU, str(dtype))
+
+
+def policy_noise_free_rollouts(settings: PolicySettings, env: Env, params, x0: Array):
+    """Host side: every seed's policy (``params`` with a leading [S] axis) noise-free from the
+    starts ``x0: [B, dX]``, with the env's staged simulator: a Trajectory [S, B]."""
+    from diffgcl.algorithms.staged import staged_simulator
+
+    act, name = policy_actor(settings, env)
+    S = jax.tree.leaves(params)[0].shape[0]
+    x0 = jnp.broadcast_to(jnp.asarray(x0)[None], (S, *jnp.shape(x0)))
+    zeros = jnp.zeros((*x0.shape[:-1], env.horizon, env.dU), x0.dtype)
+    sim = staged_simulator(env)
+    return sim.policy_rollouts(act, params, x0, zeros, shared=1, name=name)
+
+
 def make_policy_phases(
     settings: PolicySettings,
     gps_config: GPSConfig,
@@ -141,14 +204,15 @@ def make_policy_phases(
     *,
     true_cost: CostFn | None = None,
     x0: Array | None = None,
+    sim: Simulator | None = None,
 ) -> PolicyPhases:
     """The policy phases of ``env`` (see :class:`PolicyPhases`); ``gps_config`` gives the number
     of samples, the noise smoothing and the initial controllers' variance; ``true_cost`` (default
     ``env.expert_cost``) is reported for the policy's rollouts; ``x0``: training conditions [C, dX]
-    (default ``env.initial_states()``)."""
+    (default ``env.initial_states()``); sim: the simulator ``init`` and ``rollouts`` trace in."""
     from diffgcl.control.init import init_controller
-    from diffgcl.eval.policy import policy_rollouts
 
+    sim = Simulator(env) if sim is None else sim
     policy = make_policy(settings, env)
     learner = make_policy_learner(policy, settings.s_step)
     true_cost = env.expert_cost if true_cost is None else true_cost
@@ -156,48 +220,70 @@ def make_policy_phases(
     C, T, dU = X0.shape[0], env.horizon, env.dU
     N = gps_config.num_samples
     smooth = gps_config.smooth_sigma
+    act, name = policy_actor(settings, env)
 
-    def observe_one(x, key):
-        return env.obs(x, key) if settings.obs_noise else env.obs(x)
-
-    def observe(X: Array, key: PRNGKey) -> Array:
+    def observe(sim: Simulator, X: Array, key: PRNGKey) -> Array:
+        if not settings.obs_noise:
+            return sim.observations(X)
         keys = jax.random.split(key, X.shape[:-1]).reshape(*X.shape[:-1], -1)
-        flat = jax.vmap(observe_one)(X.reshape(-1, X.shape[-1]), keys.reshape(-1, keys.shape[-1]))
-        return flat.reshape(*X.shape[:-1], -1)
+        return sim.observations(X, keys)
+
+    def observe_at(sim: Simulator, X: Array) -> tuple[Array, Array]:
+        return sim.observation_jacobians(X[..., :-1, :])
 
     def init(key: PRNGKey, O: Array | None = None) -> PolicyState:
         key_net, key_samples, key_obs = jax.random.split(key, 3)
         if O is None:
             ctrl = init_controller(T, env.dX, dU, gps_config.init_var, dtype=X0.dtype)
-            sample = lambda x0, k: sample_controller(env, ctrl, x0, k, N, smooth_sigma=smooth).X
-            X = jax.vmap(sample)(X0, jax.random.split(key_samples, C))
-            O = observe(X, key_obs)
+            ctrl = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, N, *a.shape)), ctrl)
+            noise = jax.vmap(lambda k: noise_of(k, N))(jax.random.split(key_samples, C))
+            x0 = jnp.broadcast_to(X0[:, None], (C, N, env.dX))
+            X = sim.controller_rollouts(ctrl, x0, noise).X
+            O = observe(sim, X, key_obs)
         net = settings.network
         norm = fit_obs_normaliser(O, net.obs_std_floor, rel_floor=net.obs_std_rel_floor)
         return learner.init(policy.init(key_net, norm))
 
-    def act(params):
-        return lambda o, eps: policy.sample_action(params, o, eps)
+    def noise_of(key: PRNGKey, n: int) -> Array:
+        """[n, T, dU]: GPS's exploration noise of one condition."""
+        return jax.vmap(lambda k: smooth_noise(k, T, dU, smooth))(jax.random.split(key, n))
 
-    def sample(state: PolicyState, key: PRNGKey) -> tuple[Array, Array]:
-        def one(x0, k):
-            traj = sample_observed(
-                env,
-                act(state.params),
-                x0,
-                k,
-                N,
-                T,
-                smooth_sigma=smooth,
-                obs_noise=settings.obs_noise,
+    def draw(state: PolicyState, key: PRNGKey, n: int, x0: Array | None = None) -> PolicyRequest:
+        x0 = X0 if x0 is None else x0
+
+        def one(key_c):
+            key_noise, key_obs = jax.random.split(key_c)
+            return noise_of(key_noise, n), jax.random.split(key_obs, n)
+
+        noise, obs_key = jax.vmap(one)(jax.random.split(key, C))
+        if not (settings.obs_noise and n > 0):
+            obs_key = None
+        return PolicyRequest(params=state.params, x0=x0, noise=noise, obs_key=obs_key)
+
+    def simulate(sim: Simulator, request: PolicyRequest) -> SimulatedPolicy:
+        """Any leading batch axes before [C, ...]; the params carry them too."""
+        x0, noise = request.x0, request.noise
+        n = noise.shape[-3]
+        zero = jnp.zeros((*noise.shape[:-3], 1, *noise.shape[-2:]), noise.dtype)
+        rollouts = lambda x, e, k: sim.policy_rollouts(
+            act, request.params, x, e, k, shared=2, name=name
+        )
+        x0_n = lambda m: jnp.broadcast_to(x0[..., None, :], (*x0.shape[:-1], m, x0.shape[-1]))
+        if n == 0:
+            mean = rollouts(x0_n(1), zero, None)
+            return SimulatedPolicy(samples=None, mean=jax.tree.map(lambda a: a[..., 0, :, :], mean))
+        if request.obs_key is None:  # one batch: the noisy samples and the noise-free rollout
+            both = rollouts(x0_n(n + 1), jnp.concatenate([noise, zero], axis=-3), None)
+            samples = jax.tree.map(lambda a: a[..., :n, :, :], both)
+            return SimulatedPolicy(
+                samples=samples, mean=jax.tree.map(lambda a: a[..., n, :, :], both)
             )
-            return traj.X, traj.U
+        samples = rollouts(x0_n(n), noise, request.obs_key)
+        mean = rollouts(x0_n(1), zero, None)
+        return SimulatedPolicy(samples=samples, mean=jax.tree.map(lambda a: a[..., 0, :, :], mean))
 
-        return jax.vmap(one)(X0, jax.random.split(key, C))
-
-    def linearise(state: PolicyState, X: Array) -> LinearGaussianController:
-        obs = lambda x: env.obs(x)
-        return jax.vmap(lambda x: linearise_policy(policy, state.params, obs, x))(X)
+    def linearise(state: PolicyState, O: Array, J: Array, X: Array) -> LinearGaussianController:
+        return jax.vmap(lambda o, j, x: linearise_policy_at(policy, state.params, o, j, x))(O, J, X)
 
     def s_step(state: PolicyState, key: PRNGKey, X: Array, O: Array, controllers, cost=None):
         mu, prec = jax.vmap(controller_targets)(controllers, X)  # [C, N, T, ...]
@@ -210,22 +296,26 @@ def make_policy_phases(
         return state, metrics.replace(left_out=jnp.sum(w_cond == 0).astype(jnp.int32))
 
     def rollouts(state: PolicyState, x0: Array) -> Trajectory:
-        return policy_rollouts(env, policy, state.params, x0)
+        zero = jnp.zeros((x0.shape[0], T, dU), x0.dtype)
+        return sim.policy_rollouts(act, state.params, x0, zero, shared=1, name=name)
 
-    def metrics(state: PolicyState, s_metrics: SStepMetrics) -> PolicyMetrics:
-        traj = rollouts(state, X0)
-        cost = jax.vmap(lambda x, u: trajectory_cost(true_cost, x, u))(traj.X, traj.U)
-        return PolicyMetrics(success=jax.vmap(env.success)(traj.X), cost=cost, s_step=s_metrics)
+    def metrics(mean: Trajectory, s_metrics: SStepMetrics) -> PolicyMetrics:
+        cost = jax.vmap(lambda x, u: trajectory_cost(true_cost, x, u))(mean.X, mean.U)
+        return PolicyMetrics(success=jax.vmap(env.success)(mean.X), cost=cost, s_step=s_metrics)
 
     return PolicyPhases(
         init=init,
-        sample=sample,
+        draw=draw,
+        simulate=simulate,
         observe=observe,
+        observe_at=observe_at,
         linearise=linearise,
         s_step=s_step,
         rollouts=rollouts,
         metrics=metrics,
         policy=policy,
+        act=act,
+        name=name,
     )
 
 
@@ -261,24 +351,92 @@ class MDGPSMetrics:
 
 class MDGPS(NamedTuple):
     """The pure functions of :func:`make_mdgps`: init(key, hparams=None) -> MDGPSState;
-    iteration(state, key) -> (state, metrics); train(key, hparams=None) -> (state, metrics
-    [iterations]); policy_phases: the :class:`PolicyPhases` (policy, rollouts)."""
+    iteration(state, key) -> (state, metrics), which is ``update(state, simulate(sim,
+    draw(state, key)), key)``; train(key, hparams=None) -> (state, metrics [iterations]);
+    policy_phases: the :class:`PolicyPhases` (policy, rollouts)."""
 
     init: Callable[..., MDGPSState]
     iteration: Callable[[MDGPSState, PRNGKey], tuple[MDGPSState, MDGPSMetrics]]
     train: Callable[..., tuple[MDGPSState, MDGPSMetrics]]
     policy_phases: PolicyPhases
+    draw: Callable[[MDGPSState, PRNGKey], MDGPSRequest]
+    simulate: Callable[..., MDGPSSimulated]
+    update: Callable[..., tuple[MDGPSState, MDGPSMetrics]]
 
 
-def policy_iteration_samples(
-    phases, policy_phases: PolicyPhases, settings: PolicySettings, gps, policy, key
-) -> GPSSamples:
-    """Step 1: the iteration's samples with fitted dynamics, from the local controllers or (on
-    policy) from the global policy."""
-    if settings.sample_on_policy:
-        X, U = policy_phases.sample(policy, key)
-        return phases.fit(X, U)
-    return phases.outer(gps, key)
+@struct.dataclass
+class MDGPSRequest:
+    """One MDGPS iteration's requests: gps (the local controllers': N noisy samples and the
+    noise-free rollout, or only the latter when sampling on policy) and policy (its noise-free
+    rollout, and N noisy samples when sampling on policy); key_obs: the sensor noise of the
+    samples' observations."""
+
+    gps: SampleRequest
+    policy: PolicyRequest
+    key_obs: Array
+
+
+@struct.dataclass
+class MDGPSSimulated:
+    """The simulator's answer to an :class:`MDGPSRequest`: X [C, N, T+1, dX], U [C, N, T, dU]
+    the iteration's samples; mean_X [C, T+1, dX] the local controllers' noise-free rollouts;
+    A, B the step's Jacobians at the samples' mean (None with regression dynamics); policy_mean:
+    the policy's noise-free rollouts [C]; O: [C, N, T+1, dO] what the policy observed at the
+    samples (sensor noise with ``obs_noise``); O_clean [C, N, T, dO], J_obs [C, N, T, dO, dX]:
+    noise-free observations and their Jacobians at the sample states."""
+
+    X: Array
+    U: Array
+    mean_X: Array
+    A: Array | None
+    B: Array | None
+    policy_mean: Trajectory
+    O: Array
+    O_clean: Array
+    J_obs: Array
+
+
+def make_policy_sampling(phases, policy_phases: PolicyPhases, settings: PolicySettings, N: int):
+    """``(draw, simulate)`` of one MDGPS iteration's samples (step 1–2 of the module docstring):
+    draw(gps, policy, key_sample, key_obs) -> MDGPSRequest (``key_obs``: the sensor noise of the
+    samples' observations), simulate(sim, request) -> MDGPSSimulated. Shared by MDGPS and rGCL
+    with a policy."""
+
+    def draw(gps: GPSState, policy: PolicyState, key_sample: PRNGKey, key_obs) -> MDGPSRequest:
+        on = settings.sample_on_policy
+        return MDGPSRequest(
+            gps=phases.draw(gps, key_sample, 0 if on else N),
+            policy=policy_phases.draw(policy, key_sample, N if on else 0),
+            key_obs=key_obs,
+        )
+
+    def simulate(sim: Simulator, request: MDGPSRequest) -> MDGPSSimulated:
+        if settings.sample_on_policy:
+            local = phases.simulate(sim, request.gps, jacobians=False)
+            pol = policy_phases.simulate(sim, request.policy)
+            X, U = pol.samples.X, pol.samples.U
+            A, B = (None, None)
+            if phases.autodiff:
+                A, B = sim.jacobians(X.mean(axis=-3), U.mean(axis=-3))
+        else:
+            local = phases.simulate(sim, request.gps)
+            pol = policy_phases.simulate(sim, request.policy)
+            X, U, A, B = local.X[..., :-1, :, :], local.U[..., :-1, :, :], local.A, local.B
+        O = policy_phases.observe(sim, X, request.key_obs)
+        O_clean, J = policy_phases.observe_at(sim, X)
+        return MDGPSSimulated(
+            X=X,
+            U=U,
+            mean_X=local.X[..., -1, :, :],
+            A=A,
+            B=B,
+            policy_mean=pol.mean,
+            O=O,
+            O_clean=O_clean,
+            J_obs=J,
+        )
+
+    return draw, simulate
 
 
 def make_mdgps(
@@ -296,32 +454,52 @@ def make_mdgps(
         if config.gps.gauss_newton:
             raise ValueError("make_mdgps: gauss_newton=True needs the true_cost to report")
         true_cost = cost
-    phases = make_gps_phases(config.gps, env, true_cost=true_cost, x0=x0)
-    policy_phases = make_policy_phases(config.policy, config.gps, env, true_cost=true_cost, x0=x0)
+    sim = Simulator(env)
+    phases = make_gps_phases(config.gps, env, true_cost=true_cost, x0=x0, sim=sim)
+    policy_phases = make_policy_phases(
+        config.policy, config.gps, env, true_cost=true_cost, x0=x0, sim=sim
+    )
+    draw_samples, simulate = make_policy_sampling(
+        phases, policy_phases, config.policy, config.gps.num_samples
+    )
 
     def init(key: PRNGKey, hparams: GPSHyperparams | None = None) -> MDGPSState:
         key_gps, key_policy = jax.random.split(key)
         return MDGPSState(gps=phases.init(key_gps, hparams), policy=policy_phases.init(key_policy))
 
-    def iteration(state: MDGPSState, key: PRNGKey) -> tuple[MDGPSState, MDGPSMetrics]:
-        key_sample, key_obs, key_s = jax.random.split(key, 3)
-        samples = policy_iteration_samples(
-            phases, policy_phases, config.policy, state.gps, state.policy, key_sample
-        )
-        O = policy_phases.observe(samples.X, key_obs)
-        anchor = policy_phases.linearise(state.policy, samples.X)
+    def draw(state: MDGPSState, key: PRNGKey) -> MDGPSRequest:
+        key_sample, key_obs, _ = jax.random.split(key, 3)
+        return draw_samples(state.gps, state.policy, key_sample, key_obs)
+
+    def update(state: MDGPSState, sims: MDGPSSimulated, key: PRNGKey):
+        _, _, key_s = jax.random.split(key, 3)
+        samples = phases.fit_samples(sims.X, sims.U, sims.mean_X, sims.A, sims.B)
+        anchor = policy_phases.linearise(state.policy, sims.O_clean, sims.J_obs, sims.X)
         quad = phases.expand(cost, samples)
         step_mult = phases.adapt_step(state.gps, samples, quad, current=anchor, shared=True)
         gps, gps_metrics = phases.inner(state.gps, samples, quad, step_mult, anchor=anchor)
         policy, s_metrics = policy_phases.s_step(
-            state.policy, key_s, samples.X, O, gps.controller, cost=gps_metrics.cost
+            state.policy, key_s, sims.X, sims.O, gps.controller, cost=gps_metrics.cost
         )
-        metrics = MDGPSMetrics(gps=gps_metrics, policy=policy_phases.metrics(policy, s_metrics))
+        metrics = MDGPSMetrics(
+            gps=gps_metrics, policy=policy_phases.metrics(sims.policy_mean, s_metrics)
+        )
         return MDGPSState(gps=gps, policy=policy), metrics
+
+    def iteration(state: MDGPSState, key: PRNGKey) -> tuple[MDGPSState, MDGPSMetrics]:
+        return update(state, simulate(sim, draw(state, key)), key)
 
     def train(key: PRNGKey, hparams: GPSHyperparams | None = None):
         key_init, key_iter = jax.random.split(key)
         state = init(key_init, hparams)
         return lax.scan(iteration, state, jax.random.split(key_iter, config.gps.iterations))
 
-    return MDGPS(init=init, iteration=iteration, train=train, policy_phases=policy_phases)
+    return MDGPS(
+        init=init,
+        iteration=iteration,
+        train=train,
+        policy_phases=policy_phases,
+        draw=draw,
+        simulate=simulate,
+        update=update,
+    )

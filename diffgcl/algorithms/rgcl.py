@@ -85,7 +85,7 @@ from diffgcl.algorithms.mdgps import (
     PolicyMetrics,
     PolicySettings,
     make_policy_phases,
-    policy_iteration_samples,
+    make_policy_sampling,
 )
 from diffgcl.control.lqr import controller_entropy
 from diffgcl.costs.buffer import SampleBuffer, buffer_add, init_buffer
@@ -109,7 +109,8 @@ from diffgcl.costs.network import (
 from diffgcl.costs.temperature import calibrated_log_temperature
 from diffgcl.eval.controllers import demo_log_likelihood
 from diffgcl.policies.mdgps import PolicyState
-from diffgcl.sim.rollout import rollout_controller, sample_controller
+from diffgcl.sim.rollout import rollout_controller
+from diffgcl.sim.simulator import Simulator
 from diffgcl.types import Array, Env, LinearDynamics, LinearGaussianController, PRNGKey
 
 SCHEDULES = ("v1", "v2")
@@ -288,6 +289,10 @@ class RGCL(NamedTuple):
     (with pre-training); run(state, key_loop, demos, n) -> (state, metrics [n]) (``n`` static);
     default_hparams() -> RGCLHyperparams; network: the :class:`CostNetwork`; policy_phases: the
     global policy's :class:`~diffgcl.algorithms.mdgps.PolicyPhases` (None without a policy).
+    v2's iteration in parts, for a host loop that runs the simulator as programs of its own
+    (:mod:`diffgcl.algorithms.staged`; None for v1): draw(state, key_loop) -> request,
+    simulate(sim, request) -> the simulator's results, update(state, key_loop, demos, sims) ->
+    (state, metrics) — ``run`` is these three traced into a ``lax.scan``.
     """
 
     train: Callable[..., tuple[RGCLState, RGCLMetrics]]
@@ -297,6 +302,9 @@ class RGCL(NamedTuple):
     default_hparams: Callable[[], RGCLHyperparams]
     network: CostNetwork
     policy_phases: object = None
+    draw: Callable | None = None
+    simulate: Callable | None = None
+    update: Callable | None = None
 
 
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
@@ -325,6 +333,23 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
     )
 
 
+def became_non_finite(old, new) -> Array:
+    """Whether any float value of the pytree ``new`` is non-finite where ``old``'s is finite
+    (scalar bool). The leaves are compared as one concatenated vector: one check for the whole
+    state rather than a few compiled kernels per leaf (hundreds of leaves)."""
+    pairs = [
+        (jnp.ravel(a), jnp.ravel(b))
+        for a, b in zip(jax.tree.leaves(old), jax.tree.leaves(new), strict=True)
+        if jnp.issubdtype(b.dtype, jnp.inexact)
+    ]
+    if not pairs:
+        return jnp.zeros((), bool)
+    dtype = jnp.result_type(*(b.dtype for _, b in pairs))
+    old_v = jnp.concatenate([a.astype(dtype) for a, _ in pairs])
+    new_v = jnp.concatenate([b.astype(dtype) for _, b in pairs])
+    return jnp.any(jnp.isfinite(old_v) & ~jnp.isfinite(new_v))
+
+
 def _make_optimiser(config: GCLConfig, learning_rate: Array) -> optax.GradientTransformation:
     """Clipped AdamW on ``params.net`` with a traced learning rate (kept in the optimiser state)."""
 
@@ -335,7 +360,8 @@ def _make_optimiser(config: GCLConfig, learning_rate: Array) -> optax.GradientTr
 def make_train(config: RGCLConfig, env: Env) -> RGCL:
     """Set up rGCL on ``env``; see the module docstring and :class:`RGCL`."""
     gps_config = dataclasses.replace(config.gps, gauss_newton=True)
-    phases = make_gps_phases(gps_config, env, true_cost=env.expert_cost)
+    sim = Simulator(env)
+    phases = make_gps_phases(gps_config, env, true_cost=env.expert_cost, sim=sim)
     network = make_network(config, env)
     learner = make_cost_learner(network, config.gcl)
     X0 = jnp.asarray(env.initial_states())
@@ -345,11 +371,20 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     G = config.gps_per_iteration
     gcl_cfg = config.gcl
     settings = config.policy
-    policy_phases = (
-        None
-        if settings is None
-        else make_policy_phases(settings, gps_config, env, true_cost=env.expert_cost)
-    )
+    policy_phases = None
+    if settings is not None:
+        policy_phases = make_policy_phases(
+            settings, gps_config, env, true_cost=env.expert_cost, sim=sim
+        )
+        draw_policy_samples, simulate_policy_samples = make_policy_sampling(
+            phases, policy_phases, settings, N
+        )
+    # v2 pre-trains the cost in its first update, on the samples of the initial controllers that
+    # update stores (the same data as a separate pass before the loop, without a second copy of
+    # the simulator and of the cost update in the program); v1 runs GPS on the pre-trained cost
+    # before its first update, so it pre-trains in ``init``.
+    pretrain = config.pretrain and gcl_cfg.pretrain_steps > 0
+    pretrain_in_update = pretrain and config.pretrain_with_samples and config.schedule == "v2"
 
     def default_hparams() -> RGCLHyperparams:
         return RGCLHyperparams(
@@ -360,6 +395,12 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
 
     def residual(params: CostParams):
         return network.bind_residual(params)
+
+    def expand_both(first: CostParams, second: CostParams, samples: GPSSamples):
+        """The expansions [C] of two costs about the samples, as one batched expansion."""
+        both = jax.tree.map(lambda a, b: jnp.stack([a, b]), first, second)
+        quads = jax.vmap(lambda p: phases.expand(residual(p), samples))(both)
+        return jax.tree.map(lambda q: q[0], quads), jax.tree.map(lambda q: q[1], quads)
 
     def window(demos: DemoBatch, per_step=None, X=None, U=None):
         """The first T_d steps (the demos' horizon) of per-step fields [C, T, ...] (controllers,
@@ -446,9 +487,12 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             buffer, demos.controller, demos.X, demos.U, gcl_cfg
         )
 
-    def optimise(cost: CostState, key: PRNGKey, demos_w, samples_w, n_steps: int):
-        """``n_steps`` minibatch Adam steps; returns (CostState, GCLMetrics averaged)."""
+    def optimise(cost: CostState, key: PRNGKey, demos_w, samples_w, n_steps, max_steps=None):
+        """``n_steps`` minibatch Adam steps (``n_steps`` may be traced, up to ``max_steps``);
+        returns (CostState, GCLMetrics averaged over the steps). Step ``i`` draws its minibatches
+        with the ``i``-th of ``split(key, max_steps)``."""
         optimiser = _make_optimiser(gcl_cfg, jnp.zeros((), dtype))  # lr read from opt_state
+        max_steps = n_steps if max_steps is None else max_steps
 
         def step(cost: CostState, key: PRNGKey):
             key_demo, key_samp = jax.random.split(key)
@@ -467,11 +511,21 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             )
             return new, metrics.replace(grad_norm=optax.tree.norm(grads))
 
-        if n_steps == 0:
-            zero = jnp.zeros((), dtype)
-            return cost, GCLMetrics(*(zero for _ in dataclasses.fields(GCLMetrics)))
-        cost, metrics = lax.scan(step, cost, jax.random.split(key, n_steps))
-        return cost, jax.tree.map(jnp.mean, metrics)
+        zero = jnp.zeros((), dtype)
+        zeros = GCLMetrics(*(zero for _ in dataclasses.fields(GCLMetrics)))
+        if max_steps == 0:
+            return cost, zeros
+
+        keys = jax.random.split(key, max_steps)
+
+        def body(i, carry):
+            cost, total = carry
+            cost, metrics = step(cost, keys[i])
+            return cost, jax.tree.map(jnp.add, total, metrics)
+
+        cost, total = lax.fori_loop(0, n_steps, body, (cost, zeros))
+        count = jnp.maximum(jnp.asarray(n_steps, dtype), 1.0)
+        return cost, jax.tree.map(lambda m: m / count, total)
 
     # ---- init (with pre-training) --------------------------------------------------------------
 
@@ -495,24 +549,24 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         Kc = config.buffer_controllers
         empty = init_buffer(N * Kc, Kc, demos.U.shape[-2], dX, dU, dtype)
         buffer = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), empty)
-        if config.pretrain and gcl_cfg.pretrain_steps > 0:
+        if pretrain and not pretrain_in_update:
             pre_buffer = buffer
             if config.pretrain_with_samples:
                 # The initial controller's samples (no dynamics fit needed here).
-                sample = lambda ctrl, x0, k: sample_controller(
-                    env, ctrl, x0, k, N, smooth_sigma=gps_config.smooth_sigma
-                )
-                samples = jax.vmap(sample)(gps.controller, X0, jax.random.split(key_samples, C))
-                pre_buffer = store(buffer, demos, gps.controller, samples.X, samples.U)
+                request = phases.draw(gps, key_samples)
+                sims = phases.simulate(sim, request, jacobians=False)
+                X, U = sims.X[:, :-1], sims.U[:, :-1]
+                pre_buffer = store(buffer, demos, gps.controller, X, U)
             samples_w, demos_w = weighted_sets(pre_buffer, demos, key_samples)
             cost, _ = optimise(cost, key_pretrain, demos_w, samples_w, gcl_cfg.pretrain_steps)
-        params = calibrate(cost.params, demos, 0)
-        cost = cost.replace(params=params, prev_params=params)
+        if not pretrain_in_update:
+            params = calibrate(cost.params, demos, 0)
+            cost = cost.replace(params=params, prev_params=params)
         policy = None
         if policy_phases is not None:
             # The observation normaliser comes from what the demonstrator's sensors would show.
             key_policy, key_obs = jax.random.split(jax.random.fold_in(key, 1))
-            policy = policy_phases.init(key_policy, policy_phases.observe(demos.X, key_obs))
+            policy = policy_phases.init(key_policy, policy_phases.observe(sim, demos.X, key_obs))
         return RGCLState(
             gps=gps,
             cost=cost,
@@ -534,7 +588,11 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         """The cost update (or none on frozen iterations)."""
         key_sets, key_opt = jax.random.split(key)
         samples_w, demos_w = weighted_sets(buffer, demos, key_sets, samples, sample_ctrl)
-        new, metrics = optimise(cost, key_opt, demos_w, samples_w, gcl_cfg.n_steps)
+        n_steps, most = gcl_cfg.n_steps, gcl_cfg.n_steps
+        if pretrain_in_update:  # the first update pre-trains too
+            most = gcl_cfg.n_steps + gcl_cfg.pretrain_steps
+            n_steps = jnp.where(state.iteration == 0, most, gcl_cfg.n_steps)
+        new, metrics = optimise(cost, key_opt, demos_w, samples_w, n_steps, most)
         params = calibrate(new.params, demos, state.iteration + 1)
         new = new.replace(params=params, prev_params=cost.params)
         update = state.iteration < config.iterations - config.freeze_last
@@ -546,46 +604,70 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
 
     # ---- the global policy's part of a GPS iteration (no-ops without a policy) ----------------
 
-    def draw_samples(gps: GPSState, policy, key: PRNGKey):
+    def draw_samples(gps: GPSState, policy, key: PRNGKey, key_obs: PRNGKey):
+        """What one GPS iteration asks the simulator for (``key_obs``: the sensor noise of the
+        policy's observations at the samples)."""
+        if policy_phases is None:
+            return phases.draw(gps, key)
+        return draw_policy_samples(gps, policy, key, key_obs)
+
+    def simulate_samples(sim: Simulator, request):
+        if policy_phases is None:
+            return phases.simulate(sim, request)
+        return simulate_policy_samples(sim, request)
+
+    def fit_samples(gps: GPSState, policy, sims):
         """(samples with fitted dynamics, the KL anchor or None, the samples' proposal)."""
         if policy_phases is None:
-            return phases.outer(gps, key), None, gps.controller
-        samples = policy_iteration_samples(phases, policy_phases, settings, gps, policy, key)
-        anchor = policy_phases.linearise(policy, samples.X)
+            return phases.fit(sims), None, gps.controller
+        samples = phases.fit_samples(sims.X, sims.U, sims.mean_X, sims.A, sims.B)
+        anchor = policy_phases.linearise(policy, sims.O_clean, sims.J_obs, sims.X)
         return samples, anchor, anchor if settings.sample_on_policy else gps.controller
 
     def adapt(state: RGCLState, gps: GPSState, samples, quad, anchor) -> Array:
         step = phases.adapt_step(gps, samples, quad, current=anchor, shared=anchor is not None)
         return cap_step(state, step)
 
-    def s_step(policy, key: PRNGKey, samples: GPSSamples, gps: GPSState, params: CostParams):
-        """The S-step; a diverged condition is judged by its samples' learned cost (``params``,
-        the cost the controllers were just optimised for) over the whole horizon."""
+    def s_step(policy, key: PRNGKey, samples: GPSSamples, gps: GPSState, params, sims):
+        """The S-step on the policy's observations at the samples; a diverged condition is
+        judged by its samples' learned cost (``params``, the cost the controllers were just
+        optimised for) over the whole horizon. Returns the policy and its metrics (those of the
+        policy in effect during the iteration, from the simulator's rollouts)."""
         if policy_phases is None:
             return None, None
-        key_obs, key_fit = jax.random.split(key)
-        O = policy_phases.observe(samples.X, key_obs)
+        _, key_fit = jax.random.split(key)
         judged = settings.outlier_cost_ratio is not None
         cost = learned_cost(params, samples.X, samples.U) if judged else None
         policy, s_metrics = policy_phases.s_step(
-            policy, key_fit, samples.X, O, gps.controller, cost=cost
+            policy, key_fit, samples.X, sims.O, gps.controller, cost=cost
         )
-        return policy, policy_phases.metrics(policy, s_metrics)
+        return policy, policy_phases.metrics(sims.policy_mean, s_metrics)
 
-    def iteration_v2(state: RGCLState, key: PRNGKey, demos: DemoBatch):
+    def iteration_keys(state: RGCLState, key_loop: PRNGKey):
+        """(key_outer, key_cost, key_policy, key_obs) of the iteration ``state.step``."""
+        key = jax.random.fold_in(key_loop, state.step)
         key_outer, key_cost, key_policy = jax.random.split(key, 3)
+        key_obs, _ = jax.random.split(key_policy)
+        return key_outer, key_cost, key_policy, key_obs
+
+    def draw_v2(state: RGCLState, key_loop: PRNGKey):
+        key_outer, _, _, key_obs = iteration_keys(state, key_loop)
+        return draw_samples(state.gps, state.policy, key_outer, key_obs)
+
+    def update_v2(state: RGCLState, key_loop: PRNGKey, demos: DemoBatch, sims):
+        _, key_cost, key_policy, _ = iteration_keys(state, key_loop)
         gps = state.gps
-        samples, anchor, proposal = draw_samples(gps, state.policy, key_outer)
-        # The step is judged with the cost the current controller was optimised for.
-        quad_prev = phases.expand(residual(state.cost.params), samples)
-        step_mult = adapt(state, gps, samples, quad_prev, anchor)
+        samples, anchor, proposal = fit_samples(gps, state.policy, sims)
         buffer = store(state.buffer, demos, proposal, samples.X, samples.U)
         cost, gcl_metrics, updated = cost_step(
             state, state.cost, key_cost, demos, samples, proposal, buffer
         )
-        quad = phases.expand(residual(cost.params), samples)
+        # The step is judged with the cost the current controller was optimised for, the C-step
+        # optimises the updated one: both expanded about the samples in one batched call.
+        quad_prev, quad = expand_both(state.cost.params, cost.params, samples)
+        step_mult = adapt(state, gps, samples, quad_prev, anchor)
         gps, gps_metrics = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
-        policy, policy_metrics = s_step(state.policy, key_policy, samples, gps, cost.params)
+        policy, policy_metrics = s_step(state.policy, key_policy, samples, gps, cost.params, sims)
         metrics = RGCLMetrics(
             gps=jax.tree.map(lambda a: a[None], gps_metrics),
             learned_cost=window_cost(cost.params, demos, samples)[None],
@@ -599,7 +681,8 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             policy=jax.tree.map(lambda a: a[None], policy_metrics),
             policy_params=None if policy is None else policy.params,
         )
-        return state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy), metrics
+        new = state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy)
+        return guard(state, new, metrics)
 
     def iteration_v1(state: RGCLState, key: PRNGKey, demos: DemoBatch):
         key_gps, key_cost = jax.random.split(key)
@@ -609,8 +692,9 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             gps, policy, buffer, _, _ = carry
             key, first = inputs
             key_sample, key_policy = jax.random.split(key)
-            samples, anchor, proposal = draw_samples(gps, policy, key_sample)
-            quad = phases.expand(residual(params), samples)
+            key_obs, _ = jax.random.split(key_policy)
+            sims = simulate_samples(sim, draw_samples(gps, policy, key_sample, key_obs))
+            samples, anchor, proposal = fit_samples(gps, policy, sims)
             # Each step is judged under one cost: the one its controller was optimised for (J_prev
             # and J_pred were expanded with it) — on the first GPS iteration after a cost update,
             # the cost before that update. The GCL objective does not fix the cost's constant, so
@@ -618,11 +702,11 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             judged = jax.tree.map(
                 lambda old, new: jnp.where(first, old, new), state.cost.prev_params, params
             )
-            quad_judged = phases.expand(residual(judged), samples)
+            quad_judged, quad = expand_both(judged, params, samples)
             step_mult = adapt(state, gps, samples, quad_judged, anchor)
             buffer = store(buffer, demos, proposal, samples.X, samples.U)
             new_gps, m = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
-            policy, pm = s_step(policy, key_policy, samples, new_gps, params)
+            policy, pm = s_step(policy, key_policy, samples, new_gps, params, sims)
             lc = window_cost(params, demos, samples)
             ll = demo_likelihood(new_gps.controller, demos)
             out = (m, lc, ll, samples.X, pm)
@@ -630,7 +714,9 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
 
         empty = jax.tree.map(
             lambda s: jnp.zeros(s.shape, s.dtype),
-            jax.eval_shape(lambda: phases.outer(state.gps, key_gps)),
+            jax.eval_shape(
+                lambda: phases.fit(phases.simulate(sim, phases.draw(state.gps, key_gps)))
+            ),
         )
         carry = (state.gps, state.policy, state.buffer, empty, state.gps.controller)
         (gps, policy, buffer, samples, proposal), (gps_metrics, lc, ll, sample_X, pm) = lax.scan(
@@ -655,28 +741,25 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         )
         return state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy), metrics
 
-    one_iteration = iteration_v1 if config.schedule == "v1" else iteration_v2
-
-    def guarded(state: RGCLState, key_loop: PRNGKey, demos: DemoBatch):
-        key = jax.random.fold_in(key_loop, state.step)
-        new, metrics = one_iteration(state, key, demos)
+    def guard(state: RGCLState, new: RGCLState, metrics: RGCLMetrics):
+        """Count the iteration; with the NaN guard, keep ``state`` when the iteration made a
+        finite value non-finite (a swept hyperparameter that is itself not finite does not
+        count)."""
         new = new.replace(iteration=state.iteration + 1, step=state.step + 1)
         if not config.nan_guard:
             return new, metrics
-        # Rejected when the iteration made a finite value non-finite (a swept hyperparameter
-        # that is itself not finite does not count).
-        finite = jnp.all(
-            jnp.stack(
-                [
-                    jnp.all(jnp.isfinite(a) | ~jnp.isfinite(b))
-                    for a, b in zip(jax.tree.leaves(new), jax.tree.leaves(state), strict=True)
-                    if jnp.issubdtype(a.dtype, jnp.inexact)
-                ]
-            )
-        )
+        finite = ~jnp.any(became_non_finite(state, new))
         kept = jax.tree.map(lambda a, b: jnp.where(finite, a, b), new, state)
         kept = kept.replace(step=state.step + 1)
         return kept, metrics.replace(rolled_back=~finite)
+
+    def guarded(state: RGCLState, key_loop: PRNGKey, demos: DemoBatch):
+        if config.schedule == "v2":
+            return update_v2(
+                state, key_loop, demos, simulate_samples(sim, draw_v2(state, key_loop))
+            )
+        new, metrics = iteration_v1(state, jax.random.fold_in(key_loop, state.step), demos)
+        return guard(state, new, metrics)
 
     def run(state: RGCLState, key_loop: PRNGKey, demos: DemoBatch, n: int):
         return lax.scan(lambda s, _: guarded(s, key_loop, demos), state, None, length=n)
@@ -686,6 +769,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         state = init(key_init, demos, hparams)
         return run(state, key_loop, demos, config.iterations)
 
+    v2 = config.schedule == "v2"
     return RGCL(
         train=train,
         split_key=split_key,
@@ -694,6 +778,9 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         default_hparams=default_hparams,
         network=network,
         policy_phases=policy_phases,
+        draw=draw_v2 if v2 else None,
+        simulate=simulate_samples if v2 else None,
+        update=update_v2 if v2 else None,
     )
 
 
@@ -733,27 +820,75 @@ def final_rollouts(env: Env, controller: LinearGaussianController) -> Array:
     return jax.vmap(one)(controller, X0)
 
 
-def make_reoptimise(config: RGCLConfig, env: Env, network: CostNetwork):
-    """``reopt(key, params, hparams=None) -> (GPSState, GPSMetrics [iterations, C])``: a fresh
-    initial controller optimised by GPS on the frozen learned cost ``params`` (Gauss–Newton), the
-    metrics reporting the true cost and success. ``config.reopt_iterations`` iterations."""
-    gps_config = dataclasses.replace(config.gps, gauss_newton=True)
-    phases = make_gps_phases(gps_config, env, true_cost=env.expert_cost)
+@dataclass(frozen=True, eq=False)
+class Reoptimise:
+    """The re-optimisation check of :func:`make_reoptimise`. Called as ``reopt(key, params,
+    hparams=None) -> (GPSState, GPSMetrics [iterations, C])`` (one traced program; jit it as any
+    function); its parts for a staged loop (:func:`reoptimise_seeds`): init(key, hparams=None),
+    draw(state, key), simulate(sim, request), update(state, params, sims)."""
 
-    def reopt(key: PRNGKey, params: CostParams, hparams: RGCLHyperparams | None = None):
+    train: Callable[..., tuple[GPSState, GPSMetrics]]
+    init: Callable[..., GPSState]
+    draw: Callable
+    simulate: Callable
+    update: Callable
+    iterations: int
+
+    def __call__(self, key: PRNGKey, params: CostParams, hparams=None):
+        return self.train(key, params, hparams)
+
+
+def make_reoptimise(config: RGCLConfig, env: Env, network: CostNetwork) -> Reoptimise:
+    """A fresh initial controller optimised by GPS on the frozen learned cost ``params``
+    (Gauss–Newton), the metrics reporting the true cost and success (of the controller before
+    each C-step; the final controllers are judged by their rollouts, :func:`reoptimise_seeds`).
+    ``config.reopt_iterations`` iterations."""
+    gps_config = dataclasses.replace(config.gps, gauss_newton=True)
+    sim = Simulator(env)
+    phases = make_gps_phases(gps_config, env, true_cost=env.expert_cost, sim=sim)
+
+    def init(key: PRNGKey, hparams: RGCLHyperparams | None = None) -> GPSState:
         gps_hp = None if hparams is None else GPSHyperparams(hparams.kl_step, hparams.init_var)
+        return phases.init(key, gps_hp)
+
+    def update(state: GPSState, params: CostParams, sims) -> tuple[GPSState, GPSMetrics]:
+        samples = phases.fit(sims)
+        quad = phases.expand(network.bind_residual(params), samples)
+        return phases.inner(state, samples, quad, phases.adapt_step(state, samples, quad))
+
+    def train(key: PRNGKey, params: CostParams, hparams: RGCLHyperparams | None = None):
         key_init, key_iter = jax.random.split(key)
-        cost = network.bind_residual(params)
 
         def iteration(state: GPSState, key: PRNGKey):
-            samples = phases.outer(state, key)
-            quad = phases.expand(cost, samples)
-            return phases.inner(state, samples, quad, phases.adapt_step(state, samples, quad))
+            return update(state, params, phases.simulate(sim, phases.draw(state, key)))
 
-        state = phases.init(key_init, gps_hp)
+        state = init(key_init, hparams)
         return lax.scan(iteration, state, jax.random.split(key_iter, config.reopt_iterations))
 
-    return reopt
+    return Reoptimise(
+        train=train,
+        init=init,
+        draw=phases.draw,
+        simulate=phases.simulate,
+        update=update,
+        iterations=config.reopt_iterations,
+    )
+
+
+def reoptimise_seeds(config: RGCLConfig, env: Env, network: CostNetwork, params, keys):
+    """Host side: the re-optimisation check for learned costs ``params`` (leading [S] axis) with
+    ``keys: [S, 2]``, as a staged loop (:mod:`diffgcl.algorithms.staged`). Returns (GPSState,
+    GPSMetrics [S, iterations, C], final_success [S, C]: the final controllers' noise-free
+    rollouts succeed)."""
+    from diffgcl.algorithms.staged import run_gps_seeds
+
+    reopt = make_reoptimise(config, env, network)
+    params = jax.tree.map(jnp.asarray, params)
+    state, metrics, X = run_gps_seeds(
+        reopt, keys, reopt.iterations, env, update_args=(params,), update_axes=(0,)
+    )
+    success = np.asarray(jax.vmap(jax.vmap(env.success))(jnp.asarray(X)))
+    return state, metrics, success
 
 
 def demo_batch(demos, conditions: int, dtype=None, env: Env | None = None) -> DemoBatch:
@@ -778,9 +913,16 @@ def demo_batch(demos, conditions: int, dtype=None, env: Env | None = None) -> De
     X = jnp.asarray(np.stack([demos.X[g] for g in groups]), dtype)
     U = jnp.asarray(np.stack([demos.U[g] for g in groups]), dtype)
     controller = jax.jit(jax.vmap(fit_demo_controller))(X, U)
-    dynamics = None
-    if env is not None:
-        from diffgcl.dynamics.autodiff import fit_dynamics
-
-        dynamics = jax.jit(jax.vmap(lambda x, u: fit_dynamics(env.step, x, u)))(X, U)
+    dynamics = None if env is None else demo_dynamics(env, X, U)
     return DemoBatch(X=X, U=U, controller=controller, dynamics=dynamics)
+
+
+def demo_dynamics(env: Env, X: Array, U: Array) -> LinearDynamics:
+    """Host side: the env's dynamics linearised about the demos of each condition, X: [C, N,
+    T+1, dX], U: [C, N, T, dU] -> LinearDynamics [C, T, ...] (the Jacobians by the env's staged
+    simulator, shared with the training's programs)."""
+    from diffgcl.algorithms.staged import staged_simulator
+    from diffgcl.dynamics.autodiff import dynamics_from_jacobians
+
+    A, B = staged_simulator(env).jacobians(X.mean(axis=1), U.mean(axis=1))
+    return jax.jit(jax.vmap(dynamics_from_jacobians))(A, B, X, U)

@@ -54,7 +54,9 @@ from diffgcl.algorithms.rgcl import (
     RGCLState,
     make_train,
 )
+from diffgcl.algorithms.staged import StagedLoop, can_stage, staged_simulator
 from diffgcl.distributed import check_same_everywhere, is_leader, to_host
+from diffgcl.runtime import CompileClock
 from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
 CHECKPOINT = "checkpoint.npz"
@@ -166,12 +168,17 @@ def train_seeds(
     resume: bool = False,
     progress: bool = True,
     crash_after: int | None = None,
+    staged: bool | None = None,
 ) -> RunResult:
     """Train ``config`` on ``env`` for every seed (one vmapped batch); see the module docstring.
 
     hparams: RGCLHyperparams with a leading [S] axis (default: the config's values for all).
     out: run folder for the checkpoint (``out/checkpoint.npz``); resume: continue from it.
     crash_after: raise :class:`SimulatedCrash` once this many iterations are done (tests).
+    staged: run the iterations as a host loop over the jitted draw and update programs with the
+    env's staged simulator (:mod:`diffgcl.algorithms.staged`; the same results, the simulator
+    compiled once for every program of the process) — default: for v2 in one process; else each
+    chunk of iterations is one traced program.
     """
     seeds = [int(s) for s in seeds]
     S = len(seeds)
@@ -197,9 +204,25 @@ def train_seeds(
     init_fn = jax.jit(vmap_over_devices(rgcl.init, in_axes=(0, None, 0)))
     programs: dict[int, object] = {}
     compile_seconds = 0.0
+    if staged is None:
+        staged = rgcl.update is not None and can_stage()
+    if staged and rgcl.update is None:
+        raise ValueError(f"train_seeds: schedule {config.schedule} has no staged iteration")
+    loop = None
+    if staged:
+        loop = StagedLoop(
+            rgcl.draw,
+            rgcl.simulate,
+            rgcl.update,
+            staged_simulator(env),
+            draw_axes=(0,),
+            update_axes=(0, None),
+        )
 
     def chunk_fn(n: int):
         nonlocal compile_seconds
+        if loop is not None:
+            return lambda s, k, d: loop.run(s, n, draw_args=(k,), update_args=(k, d))
         if n not in programs:
             run_n = lambda s, k, d: rgcl.run(s, k, d, n)  # noqa: E731
             f = jax.jit(vmap_over_devices(run_n, in_axes=(0, 0, None)))
@@ -255,8 +278,10 @@ def train_seeds(
             state = shard_batch_if_even(state)
             program = chunk_fn(n)
             t0 = time.perf_counter()
-            new_state, m = jax.block_until_ready(program(state, key_loop, demos))
-            run_seconds += time.perf_counter() - t0
+            with CompileClock() as clock:
+                new_state, m = jax.block_until_ready(program(state, key_loop, demos))
+            compile_seconds += clock.seconds
+            run_seconds += time.perf_counter() - t0 - clock.seconds
             m, new_host = to_host((m, new_state))
             for s, i in np.argwhere(m.rolled_back):
                 line = f"seed {seeds[s]} iteration {done + i + 1}: non-finite state, rolled back"
@@ -338,13 +363,18 @@ def run_summary(result: RunResult, env, demos: DemoBatch | None = None) -> dict:
     (:mod:`diffgcl.eval.controllers`: entropy beside the demos' controller's, the demos' mean
     log-likelihood, success of 20 noisy samples per seed and condition) and the cost's
     log-temperature."""
-    from diffgcl.algorithms.rgcl import final_rollouts
+    from diffgcl.algorithms.gps_runner import success_after_c_steps
+    from diffgcl.algorithms.staged import noise_free_rollouts
 
     controller = jax.tree.map(jnp.asarray, result.state.gps.controller)
-    X = np.asarray(jax.jit(jax.vmap(lambda c: final_rollouts(env, c)))(controller))
-    success = np.asarray(jax.vmap(jax.vmap(env.success))(jnp.asarray(X))).all(axis=-1)
+    X, _ = noise_free_rollouts(env, controller, jnp.asarray(result.state.gps.x0))
+    per_condition = np.asarray(jax.vmap(jax.vmap(env.success))(jnp.asarray(X)))  # [S, C]
+    success = per_condition.all(axis=-1)
     dist = np.abs(X[:, :, -1, :2] - np.asarray(env.target)).max(axis=(1, 2))
-    per_iter = np.all(result.metrics.gps.success[:, :, -1], axis=-1)  # [S, iterations]
+    sampled = np.asarray(result.metrics.gps.success)  # [S, iterations, G, C]
+    S, I, G, C = sampled.shape
+    after = success_after_c_steps(sampled.reshape(S, I * G, C), per_condition)
+    per_iter = np.all(after.reshape(S, I, G, C)[:, :, -1], axis=-1)  # [S, iterations]
     first = [int(np.argmax(r)) + 1 if r.any() else None for r in per_iter]
     return {
         "seeds": result.seeds,

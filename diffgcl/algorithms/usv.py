@@ -307,11 +307,9 @@ def demo_batch_pooled(demos: DemoSet, dtype=None, env: UsvEnv | None = None) -> 
     controller = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), pooled)
     dynamics = None
     if env is not None:
-        from diffgcl.dynamics.autodiff import fit_dynamics
+        from diffgcl.algorithms.rgcl import demo_dynamics
 
-        dynamics = jax.jit(jax.vmap(lambda x, u: fit_dynamics(env.step, x, u)))(
-            X[:, None], U[:, None]
-        )
+        dynamics = demo_dynamics(env, X[:, None], U[:, None])
     return DemoBatch(X=X[:, None], U=U[:, None], controller=controller, dynamics=dynamics)
 
 

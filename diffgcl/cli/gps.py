@@ -140,7 +140,7 @@ def _check_demo_folder(out: Path) -> None:
 def _write_demos(env, result, seeds, args) -> str:
     from diffgcl.algorithms.expert import best_expert, write_expert_demos
 
-    i = best_expert(result["metrics"])
+    i = best_expert(result["metrics"], result["final_success"])
     if i is None:
         raise SystemExit("diffgcl: no seed succeeded; no expert demos from a failed expert")
     controllers = jax.tree.map(lambda a: jnp.asarray(a[i]), result["state"].controller)

@@ -54,6 +54,18 @@ def residual_covariance(
     return cov + cov_floor * jnp.eye(X.shape[-1], dtype=X.dtype)
 
 
+def dynamics_from_jacobians(
+    A: Array, B: Array, X: Array, U: Array, cov_floor: float = 1e-6
+) -> LinearDynamics:
+    """Linear-Gaussian dynamics of one condition from the Jacobians ``A: [T, dX, dX]``,
+    ``B: [T, dX, dU]`` at the mean of its samples X: [N, T+1, dX], U: [N, T, dU]: the offset
+    ``c_t`` that makes the model's mean trajectory the sample mean and the residual covariance."""
+    x_mean, u_mean = X.mean(axis=0), U.mean(axis=0)
+    c = x_mean[1:] - jnp.einsum("tij,tj->ti", A, x_mean[:-1]) - jnp.einsum("tij,tj->ti", B, u_mean)
+    cov = residual_covariance(A, B, c, X, U, cov_floor)
+    return LinearDynamics(A=A, B=B, c=c, cov=cov)
+
+
 def fit_dynamics(step: StepFn, X: Array, U: Array, cov_floor: float = 1e-6) -> LinearDynamics:
     """Autodiff linear-Gaussian dynamics from samples of one condition.
 
@@ -66,8 +78,5 @@ def fit_dynamics(step: StepFn, X: Array, U: Array, cov_floor: float = 1e-6) -> L
         )
     n, t1, dx = X.shape
     check_shape("fit_dynamics", "U", U, (n, t1 - 1, U.shape[-1]))
-    x_mean, u_mean = X.mean(axis=0), U.mean(axis=0)
-    A, B = linearize_trajectory(step, x_mean, u_mean)
-    c = x_mean[1:] - jnp.einsum("tij,tj->ti", A, x_mean[:-1]) - jnp.einsum("tij,tj->ti", B, u_mean)
-    cov = residual_covariance(A, B, c, X, U, cov_floor)
-    return LinearDynamics(A=A, B=B, c=c, cov=cov)
+    A, B = linearize_trajectory(step, X.mean(axis=0), U.mean(axis=0))
+    return dynamics_from_jacobians(A, B, X, U, cov_floor)

@@ -18,14 +18,13 @@ from diffgcl.types import Array, Env, PRNGKey
 
 def evaluate_cost(config, env, params, seeds) -> dict:
     """Re-optimisation success and EPIC distance of learned costs ``params`` [S, ...]."""
-    from diffgcl.algorithms.rgcl import make_network, make_reoptimise
+    from diffgcl.algorithms.rgcl import make_network, reoptimise_seeds
 
     network = make_network(config, env)
     params = jax.tree.map(jnp.asarray, params)
-    reopt = make_reoptimise(config, env, network)
     keys = jnp.stack([jax.random.PRNGKey(100_000 + s) for s in seeds])
-    _, m = jax.jit(jax.vmap(reopt))(keys, params)
-    reopt_success = np.asarray(m.success[:, -1]).all(-1)
+    _, _, final = reoptimise_seeds(config, env, network, params, keys)
+    reopt_success = np.asarray(final).all(-1)
     coverage = arm_coverage(env, jax.random.PRNGKey(7))
     epic = jax.jit(jax.vmap(lambda p: epic_to_expert(env, network, p, coverage)))(params)
     return {

@@ -129,18 +129,29 @@ def linearise_policy(
     """The policy as a linear-Gaussian controller around one condition's samples
     ``X: [N, T+1, dX]`` (states 0 .. T−1): ``K_t = mean_n ∂μ_θ(o(x))/∂x`` at the samples (forward
     mode), ``k_t = mean_n μ_θ(o(x_n,t)) − K_t · mean_n x_n,t``, covariance ``diag(var)``.
-    ``obs_fn(x: [dX]) -> o: [dO]`` (noise-free). Returns fields [T, ...]."""
+    ``obs_fn(x: [dX]) -> o: [dO]`` (noise-free). Returns fields [T, ...].
 
-    def act(x):
-        return policy.mean_action(params, obs_fn(x))
+    :func:`linearise_policy_at` is the same from the observations and their Jacobians, which the
+    simulator computes (the algorithms use that one)."""
+    states = X[:, :-1]
+    O, J = jax.vmap(jax.vmap(lambda x: (obs_fn(x), jax.jacfwd(obs_fn)(x))))(states)
+    return linearise_policy_at(policy, params, O, J, X)
 
-    def at_state(x):
-        return act(x), jax.jacfwd(act)(x)
 
-    states = X[:, :-1]  # [N, T, dX]
-    u, J = jax.vmap(jax.vmap(at_state))(states)  # [N, T, dU], [N, T, dU, dX]
-    K = J.mean(axis=0)
-    k = u.mean(axis=0) - jnp.einsum("tij,tj->ti", K, states.mean(axis=0))
+def linearise_policy_at(
+    policy: GaussianPolicy, params: PolicyParams, O: Array, J: Array, X: Array
+) -> LinearGaussianController:
+    """:func:`linearise_policy` by the chain rule ``∂μ_θ(o(x))/∂x = ∂μ_θ/∂o · ∂o/∂x`` from the
+    noise-free observations ``O: [N, T, dO]`` and their Jacobians ``J: [N, T, dO, dX]`` at one
+    condition's sample states ``X: [N, T+1, dX]`` (states 0 .. T−1). Returns fields [T, ...]."""
+
+    def at_obs(o, J_o):
+        act = lambda o: policy.mean_action(params, o)
+        return act(o), jax.jacfwd(act)(o) @ J_o
+
+    u, K_all = jax.vmap(jax.vmap(at_obs))(O, J)  # [N, T, dU], [N, T, dU, dX]
+    K = K_all.mean(axis=0)
+    k = u.mean(axis=0) - jnp.einsum("tij,tj->ti", K, X[:, :-1].mean(axis=0))
     T, dU = k.shape
     cov = jnp.broadcast_to(jnp.diag(params.var), (T, dU, dU))
     return make_controller(K, k, cov)

@@ -1,0 +1,120 @@
+"""Host loops that run an algorithm's iterations in stages: the simulator as programs of its own.
+
+Every algorithm splits an iteration into ``draw`` (pure: what to simulate), ``simulate`` (the
+only part that runs the env, :class:`~diffgcl.sim.simulator.Simulator`) and ``update`` (pure:
+everything else). Traced together into one program (``train``, ``run``), the simulator is
+compiled into that program — and again into every other program that simulates: the expert's
+GPS, rGCL's chunks, the re-optimisation check, the evaluations. Here ``draw`` and ``update``
+are jitted (vmapped over seeds, split over the devices), and ``simulate`` runs on the host
+with the env's staged simulator (:func:`staged_simulator`): its rollout and Jacobian programs
+are compiled once per env and kind and shared by every algorithm and call in the
+process, and through the persistent compilation cache by every later process.
+
+The results equal the traced programs' (``tests/test_simulator.py``); the cost is a few
+program dispatches per iteration (under a millisecond each) and the simulator's inputs and
+outputs passing through host memory.
+"""
+
+from __future__ import annotations
+
+import weakref
+
+import jax
+import numpy as np
+
+from diffgcl.sim.sharding import vmap_over_devices
+from diffgcl.sim.simulator import Simulator
+
+_SIMULATORS: weakref.WeakKeyDictionary = weakref.WeakKeyDictionary()
+
+
+def staged_simulator(env) -> Simulator:
+    """The process-wide staged :class:`Simulator` of ``env`` (one per env object, so that every
+    caller shares its compiled programs)."""
+    sim = _SIMULATORS.get(env)
+    if sim is None:
+        sim = Simulator(env, staged=True)
+        _SIMULATORS[env] = sim
+    return sim
+
+
+def can_stage() -> bool:
+    """Staged loops run in one process (several processes run the traced programs, whose
+    batches XLA lays out over all their devices)."""
+    return jax.process_count() == 1
+
+
+def stack_metrics(metrics: list):
+    """Per-iteration metrics [S, ...] -> [S, n, ...] (NumPy)."""
+    return jax.tree.map(lambda *a: np.stack([np.asarray(x) for x in a], axis=1), *metrics)
+
+
+class StagedLoop:
+    """``n`` iterations of ``update(state, *args, simulate(sim, draw(state, *draw_args)))`` for
+    a batch of seeds (every state leaf with a leading seed axis).
+
+    draw(state, *draw_args) -> request and update(state, *args, sims) -> (state, metrics) are
+    written for one seed; ``draw_axes`` / ``update_axes`` give the ``in_axes`` (0: per seed,
+    None: shared) of their extra arguments. simulate(sim, request) takes the seed-batched
+    request.
+    """
+
+    def __init__(self, draw, simulate, update, sim: Simulator, draw_axes=(), update_axes=()):
+        self.simulate = simulate
+        self.sim = sim
+        self.draw = jax.jit(vmap_over_devices(draw, in_axes=(0, *draw_axes)))
+        self.update = jax.jit(vmap_over_devices(update, in_axes=(0, *update_axes, 0)))
+
+    def step(self, state, draw_args=(), update_args=()):
+        request = self.draw(state, *draw_args)
+        sims = self.simulate(self.sim, request)
+        return self.update(state, *update_args, sims)
+
+    def run(self, state, n: int, draw_args=(), update_args=()):
+        """(state, metrics [S, n, ...] as NumPy) after ``n`` iterations."""
+        metrics = []
+        for _ in range(n):
+            state, m = self.step(state, draw_args, update_args)
+            metrics.append(m)
+        return state, stack_metrics(metrics)
+
+
+def noise_free_rollouts(env, controller, x0):
+    """Noise-free rollouts of controllers (fields [..., C, T, ...]) from ``x0: [..., C, dX]``
+    with the env's staged simulator: X [..., C, T+1, dX], U [..., C, T, dU] (NumPy)."""
+    import jax.numpy as jnp
+
+    T = controller.K.shape[-3]
+    zeros = jnp.zeros((*x0.shape[:-1], T, env.dU), jnp.asarray(x0).dtype)
+    traj = staged_simulator(env).controller_rollouts(controller, jnp.asarray(x0), zeros)
+    return np.asarray(traj.X), np.asarray(traj.U)
+
+
+def run_gps_seeds(gps, keys, iterations: int, env, update_args=(), update_axes=(), hparams=None):
+    """GPS-like iterations for a batch of seeds as a staged loop (the same results as
+    ``jax.vmap(gps.train)``): ``gps`` has ``init(key, hparams)``, ``draw(state, key)``,
+    ``simulate(sim, request)`` and ``update(state, *update_args, sims)``; ``keys: [S, 2]`` (split
+    into the init key and one key per iteration as ``train`` does). Returns (state, metrics
+    [S, iterations, ...], X_final [S, C, T+1, dX]: the final controllers' noise-free rollouts)."""
+    import jax.numpy as jnp
+
+    def split(key):
+        key_init, key_iter = jax.random.split(key)
+        return key_init, jax.random.split(key_iter, iterations)
+
+    key_init, key_iter = jax.jit(jax.vmap(split))(keys)
+    if hparams is None:
+        init = jax.jit(jax.vmap(lambda k: gps.init(k)))
+        state = init(key_init)
+    else:
+        state = jax.jit(jax.vmap(gps.init))(key_init, hparams)
+    loop = StagedLoop(
+        gps.draw, gps.simulate, gps.update, staged_simulator(env), (0,), tuple(update_axes)
+    )
+    metrics = []
+    for i in range(iterations):
+        state, m = loop.step(state, (key_iter[:, i],), tuple(update_args))
+        metrics.append(m)
+    gps_state = state.gps if hasattr(state, "gps") else state
+    X, _ = noise_free_rollouts(env, gps_state.controller, jnp.asarray(gps_state.x0))
+    return state, stack_metrics(metrics), X
