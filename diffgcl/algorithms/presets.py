@@ -157,11 +157,11 @@ def default(schedule: str = "v2") -> RGCLConfig:
 
 
 def usv() -> RGCLConfig:
-    """The USV task (:mod:`diffgcl.algorithms.usv`): rGCL v2 on the hull with normalised actions,
+    """The USV task (:mod:`diffgcl.usv`): rGCL v2 on the hull with normalised actions,
     a cost of learned non-negative weights on a sailor's squared residuals (cross-track and
     heading error, surge and progress speed errors, sway, yaw rate, depth inside the task's
     clearance margins, by default from the demos (5, 10, 15, 20 m on the built-in bags;
-    :func:`diffgcl.algorithms.usv.margins_for_clearance`); ``network.form="weighted"``,
+    :func:`diffgcl.usv.margins_for_clearance`); ``network.form="weighted"``,
     :meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`) plus the actuators' limit barrier, and a
     global MDGPS policy on the boat's observations (noisy sensors in its training samples).
 
@@ -176,7 +176,7 @@ def usv() -> RGCLConfig:
     * ``kl_step`` 0.3 and ``max_step_mult`` 2 (ε ≤ 0.6 nats per step, 270 per iteration over
       the 450 training steps): with 1.0 and 10 the learned cost's controllers blew up at
       iterations 3–5 (true cost 10⁵–10⁷) and the boat circled with its nozzle hard over; the
-      hand-written cost's reference keeps 1.0 and 10 (:class:`~diffgcl.algorithms.usv.
+      hand-written cost's reference keeps 1.0 and 10 (:class:`~diffgcl.usv.
       UsvRunConfig`);
     * 14 iterations, the last 3 on a frozen cost: at 30 the controllers still blew up late in
       some runs (true cost 10⁴–10¹⁰ from iteration 15 or 28 on) and the policy inherited it;
