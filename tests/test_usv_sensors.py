@@ -16,7 +16,8 @@ import pytest
 from scipy.stats import norm
 
 from diffgcl.data.scans import radar_sector_ranges
-from diffgcl.data.synth import SensorModel, _lidar_ranges
+from diffgcl.data.synth import SensorModel
+from diffgcl.data.synth.recording import _lidar_ranges
 from diffgcl.envs.usv import IX_RADIUS, make_usv_env
 from diffgcl.sim import hull as hull_sim
 from diffgcl.sim.sensors import (
