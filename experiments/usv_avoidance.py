@@ -1,4 +1,4 @@
-"""USV obstacle avoidance learned from bags, end to end (issue 13).
+"""USV obstacle avoidance learned from bags, end to end.
 
 The built-in synthetic Odin-like bags (or ``--bags DIR --topics MAP``) → demonstrations
 (ingestion) → hull identification → the demos in the task frame (approach course = +x, pole
@@ -103,7 +103,7 @@ def variant_result(pending, name: str) -> dict:
 
 
 def headline(main: dict, radar: dict | None) -> dict:
-    """The issue's keys from the runs' summaries."""
+    """The headline figures (the top-level JSON keys) from the runs' summaries."""
     rgcl = main.get("rgcl", {})
     out = {
         "episodes": rgcl.get("episodes"),

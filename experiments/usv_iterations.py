@@ -1,4 +1,4 @@
-"""Each rGCL iteration's USV policy on held-out situations, beside its learned cost (issue 13).
+"""Each rGCL iteration's USV policy on held-out situations, beside its learned cost.
 
 The USV run judges the last iteration's global policy; this script judges every iteration's, per
 training seed, so that one can see how a figure moves while the run trains. Per iteration and

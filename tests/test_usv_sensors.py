@@ -2,7 +2,7 @@
 diffgcl.envs.usv.UsvEnv.obs) against independent references: the ray-circle entry by brute
 force, the radar sectors by hand and against ingestion's own reduction, the LiDAR model against
 the synthetic generator's scans reduced by ingestion, the noise by Monte Carlo against the
-model's stated parameters, and one synthetic episode, simulated vs ingested (issue 13)."""
+model's stated parameters, and one synthetic episode, simulated vs ingested."""
 
 import dataclasses
 import tempfile

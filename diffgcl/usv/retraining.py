@@ -33,7 +33,7 @@ def controller_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[in
     """``(seed, text)`` for each training seed whose local controllers, on their own training
     starts (``per_seed``: :func:`per_seed_figures` of the controllers on the ``conditions`` demo
     starts), hit the pole on some, or are back on course at the end on fewer than
-    :data:`ON_COURSE_WARN` of them. Warning signs, not verdicts (docs/usv.md):
+    :data:`ON_COURSE_WARN` of them. Warning signs, not verdicts (docs/decisions.md):
     every run whose policy passed at 0.55–0.75× the demos' clearance and hit the pole had hits,
     and so did some whose policy was fine; the one diverged run of seeds 8–23 (seed 20; its
     policy circled, 0 % on course) had its controllers on course on none of their starts."""
@@ -68,11 +68,11 @@ def policy_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[int, s
     sensor noise on: training data only), hits the pole on some, passes below
     :data:`POLICY_CLEARANCE_WARN` × the demos' median clearance, or is back on course at the end
     on fewer than :data:`ON_COURSE_WARN` of them. The policy is what sails, and it
-    can pass closer than its controllers: on stop 27's headline, seed 0's controllers passed at
+    can pass closer than its controllers: in the headline run, seed 0's controllers passed at
     0.99×, its policy at 0.85× from the same starts and 0.70× held out (2 % collisions); on the
-    tuning seeds 0–7 (stop 28) it passed at 1.01–1.12× from the training starts, within 0.07 of
-    its held-out figure, so none warned. Not complete either: tuning seed 7 hit the pole in 1 of
-    64 held-out episodes with no sign on its training starts (docs/usv.md)."""
+    tuning seeds 0–7 it passed at 1.01–1.12× from the training starts, within 0.07 of its
+    held-out figure, so none warned. Not complete either: tuning seed 7 hit the pole in 1 of
+    64 held-out episodes with no sign on its training starts (docs/decisions.md)."""
     out = []
     for seed, hit_rate, on_course, ratio in _seed_rows(seeds, per_seed):
         signs = []

@@ -44,13 +44,14 @@ class UsvTaskConfig:
     horizon is ``horizon + train_extra``; GCL compares the demos with the window's steps only,
     see :mod:`diffgcl.algorithms.rgcl`), so that holding the course after the recordings end is
     trained too (trained on the window alone, policies drifted off the line after it, and runs
-    diverged on some seeds: docs/usv.md); proximity_margins: the clearances (m) of the learned
+    diverged on some seeds: docs/decisions.md); proximity_margins: the clearances (m) of the learned
     cost's barrier residuals (:meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`), or None to take
     them from the demos (:func:`margins_for_clearance`: 5, 10, 15, 20 m on the built-in bags).
     Their largest bounds where the learned cost can still push the boat away: with a 30 m
     margin, boats passed at 1.25–1.35× the demos' clearance (17 m on the built-in bags), with
     20 m at about 1.1×; but with 20 m about one training seed in five passed too close and hit
-    the pole, unless it was trained again (:attr:`UsvRunConfig.retrain_warned`; docs/usv.md).
+    the pole, unless it was trained again
+    (:attr:`diffgcl.usv.pipeline.UsvRunConfig.retrain_warned`; docs/decisions.md).
     """
 
     before: int = 120

@@ -100,9 +100,9 @@ class SensorModel:
     radar_pole_intensity: tuple[float, float] = (0.6, 1.0)
 
 
-# The "other boat" of issue 15: GNSS fix stamped 0.2 s late, radar point cloud every 2.5 s
-# (0.4 Hz) from 1 m ahead of the centre, with sea clutter (about 75 % of the 16 beams of the
-# default layout would read a clutter return under 11 m without a filter).
+# The "other boat" (a vessel recorded unlike Odin): GNSS fix stamped 0.2 s late, radar point
+# cloud every 2.5 s (0.4 Hz) from 1 m ahead of the centre, with sea clutter (about 75 % of the 16
+# beams of the default layout would read a clutter return under 11 m without a filter).
 OTHER_BOAT_SENSORS = SensorModel(
     radar_period_s=2.5,
     gps_latency_s=0.2,
@@ -189,11 +189,11 @@ class SynthConfig:
 
 
 def other_boat_config(**changes: Any) -> SynthConfig:
-    """The "other boat" bags of issue 15: layout ``other`` (GNSS fix with latency, ENU IMU, NED
-    odometry, LaserScan, radar PointCloud2 at 0.4 Hz with sea clutter and intensities, on-change
-    percent/degree jet commands), one bag per set with the repositioning legs recorded, every
-    pole of a set in the water at once, no markers and no obstacle topic. ``changes`` override
-    any field (e.g. ``markers="id"``)."""
+    """The "other boat" bags (a vessel recorded unlike Odin): layout ``other`` (GNSS fix with
+    latency, ENU IMU, NED odometry, LaserScan, radar PointCloud2 at 0.4 Hz with sea clutter and
+    intensities, on-change percent/degree jet commands), one bag per set with the repositioning
+    legs recorded, every pole of a set in the water at once, no markers and no obstacle topic.
+    ``changes`` override any field (e.g. ``markers="id"``)."""
     base = {
         "episodes": (3, 3),
         "lidar": (False, True),
