@@ -176,8 +176,8 @@ def usv() -> RGCLConfig:
     * ``kl_step`` 0.3 and ``max_step_mult`` 2 (ε ≤ 0.6 nats per step, 270 per iteration over
       the 450 training steps): with 1.0 and 10 the learned cost's controllers blew up at
       iterations 3–5 (true cost 10⁵–10⁷) and the boat circled with its nozzle hard over; the
-      hand-written cost's reference keeps 1.0 and 10 (:class:`~diffgcl.usv.
-      UsvRunConfig`);
+      hand-written cost's reference keeps 1.0 and 10
+      (:class:`~diffgcl.usv.UsvRunConfig`);
     * 14 iterations, the last 3 on a frozen cost: at 30 the controllers still blew up late in
       some runs (true cost 10⁴–10¹⁰ from iteration 15 or 28 on) and the policy inherited it;
       up to iteration 14 the true cost fell steadily in every run seen;

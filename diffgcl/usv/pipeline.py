@@ -40,18 +40,17 @@ METHODS = ("rgcl", "expert", "bc")
 class UsvRunConfig:
     """One run of the USV pipeline.
 
-    task: :class:`UsvTaskConfig`; rgcl: the rGCL + MDGPS settings (None: :func:`~diffgcl.
-    algorithms.presets.usv`); methods: of :data:`METHODS` — ``rgcl`` (learned cost + MDGPS),
-    ``expert`` (MDGPS with the hand-written cost, ``expert_iterations`` iterations at its own
-    KL step ``expert_kl_step`` and ``expert_max_step_mult``, with which it was measured; a fixed
-    cost takes larger steps than a learned one that moves every iteration), ``bc``
-    (behaviour cloning on the recorded observations); seeds: training seeds (vmapped);
-    heldout: number of held-out situations (drawn with ``heldout_seed``), each rolled out for
-    the window's horizon plus ``eval_extra`` steps (to judge the return); identify: fit the
-    hull to the demos (else the nominal hull); sysid: its settings; retrain_warned: how many
-    more times a training seed of ``rgcl`` is trained, each time with a new key, while its local
-    controllers or its policy warn on their own training starts (:func:`train_retrying_warned`;
-    0: warn only).
+    task: :class:`UsvTaskConfig`; rgcl: the rGCL + MDGPS settings (None:
+    :func:`~diffgcl.algorithms.presets.usv`); methods: of :data:`METHODS` — ``rgcl`` (learned cost +
+    MDGPS), ``expert`` (MDGPS with the hand-written cost, ``expert_iterations`` iterations at its
+    own KL step ``expert_kl_step`` and ``expert_max_step_mult``, with which it was measured; a fixed
+    cost takes larger steps than a learned one that moves every iteration), ``bc`` (behaviour
+    cloning on the recorded observations); seeds: training seeds (vmapped); heldout: number of
+    held-out situations (drawn with ``heldout_seed``), each rolled out for the window's horizon plus
+    ``eval_extra`` steps (to judge the return); identify: fit the hull to the demos (else the
+    nominal hull); sysid: its settings; retrain_warned: how many more times a training seed of
+    ``rgcl`` is trained, each time with a new key, while its local controllers or its policy warn on
+    their own training starts (:func:`train_retrying_warned`; 0: warn only).
     """
 
     task: UsvTaskConfig = UsvTaskConfig()
@@ -145,11 +144,11 @@ def run_over_seeds(fn, seeds, *args):
 
 
 def learned_cost_weights(network, params, names: tuple[str, ...]) -> dict:
-    """The weighted-form cost per residual (``names``: :attr:`diffgcl.envs.usv.UsvEnv.
-    cost_residual_names`), per
-    training seed (``params`` with a leading seed axis): ``per_unit`` — its weight per squared
-    unit of the residual, at the cost's temperature; ``log_w`` — the learned θ̃ (0 at the start,
-    where every residual weighs 1 per squared RMS of the demos; their mean stays 0)."""
+    """The weighted-form cost per residual (``names``:
+    :attr:`diffgcl.envs.usv.UsvEnv.cost_residual_names`), per training seed (``params`` with a
+    leading seed axis): ``per_unit`` — its weight per squared unit of the residual, at the cost's
+    temperature; ``log_w`` — the learned θ̃ (0 at the start, where every residual weighs 1 per
+    squared RMS of the demos; their mean stays 0)."""
     w = np.asarray(jax.vmap(lambda p: network.feature_weights(p) * network.temperature(p))(params))
     theta = np.asarray(jax.vmap(network.log_weights)(params))
     return {

@@ -19,7 +19,8 @@ ON_COURSE_WARN = 0.9  # warn below this share of training starts back on course 
 
 
 def _seed_rows(seeds, per_seed: dict):
-    """(seed, hit rate, back on course, clearance ratio) per seed of :func:`per_seed_figures`."""
+    """(seed, hit rate, back on course, clearance ratio) per seed of
+    :func:`~diffgcl.usv.scores.per_seed_figures`."""
     return zip(
         seeds,
         per_seed["collision_rate"],
@@ -31,12 +32,12 @@ def _seed_rows(seeds, per_seed: dict):
 
 def controller_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[int, str]]:
     """``(seed, text)`` for each training seed whose local controllers, on their own training
-    starts (``per_seed``: :func:`per_seed_figures` of the controllers on the ``conditions`` demo
-    starts), hit the pole on some, or are back on course at the end on fewer than
-    :data:`ON_COURSE_WARN` of them. Warning signs, not verdicts (docs/decisions.md):
-    every run whose policy passed at 0.55–0.75× the demos' clearance and hit the pole had hits,
-    and so did some whose policy was fine; the one diverged run of seeds 8–23 (seed 20; its
-    policy circled, 0 % on course) had its controllers on course on none of their starts."""
+    starts (``per_seed``: :func:`~diffgcl.usv.scores.per_seed_figures` of the controllers on the
+    ``conditions`` demo starts), hit the pole on some, or are back on course at the end on fewer
+    than :data:`ON_COURSE_WARN` of them. Warning signs, not verdicts (docs/decisions.md): every run
+    whose policy passed at 0.55–0.75× the demos' clearance and hit the pole had hits, and so did
+    some whose policy was fine; the one diverged run of seeds 8–23 (seed 20; its policy circled, 0 %
+    on course) had its controllers on course on none of their starts."""
     out = []
     for seed, hit_rate, on_course, ratio in _seed_rows(seeds, per_seed):
         hits = round(hit_rate * conditions)
@@ -64,15 +65,15 @@ POLICY_CLEARANCE_WARN = 0.9  # warn when the policy passes closer than this × t
 
 def policy_warnings(seeds, per_seed: dict, conditions: int) -> list[tuple[int, str]]:
     """``(seed, text)`` for each training seed whose global policy, sailing from the controllers'
-    training starts (``per_seed``: :func:`per_seed_figures` of its tracks on the identified hull,
-    sensor noise on: training data only), hits the pole on some, passes below
-    :data:`POLICY_CLEARANCE_WARN` × the demos' median clearance, or is back on course at the end
-    on fewer than :data:`ON_COURSE_WARN` of them. The policy is what sails, and it
-    can pass closer than its controllers: in the headline run, seed 0's controllers passed at
-    0.99×, its policy at 0.85× from the same starts and 0.70× held out (2 % collisions); on the
-    tuning seeds 0–7 it passed at 1.01–1.12× from the training starts, within 0.07 of its
-    held-out figure, so none warned. Not complete either: tuning seed 7 hit the pole in 1 of
-    64 held-out episodes with no sign on its training starts (docs/decisions.md)."""
+    training starts (``per_seed``: :func:`~diffgcl.usv.scores.per_seed_figures` of its tracks on the
+    identified hull, sensor noise on: training data only), hits the pole on some, passes below
+    :data:`POLICY_CLEARANCE_WARN` × the demos' median clearance, or is back on course at the end on
+    fewer than :data:`ON_COURSE_WARN` of them. The policy is what sails, and it can pass closer than
+    its controllers: in the headline run, seed 0's controllers passed at 0.99×, its policy at 0.85×
+    from the same starts and 0.70× held out (2 % collisions); on the tuning seeds 0–7 it passed at
+    1.01–1.12× from the training starts, within 0.07 of its held-out figure, so none warned. Not
+    complete either: tuning seed 7 hit the pole in 1 of 64 held-out episodes with no sign on its
+    training starts (docs/decisions.md)."""
     out = []
     for seed, hit_rate, on_course, ratio in _seed_rows(seeds, per_seed):
         signs = []
@@ -145,10 +146,10 @@ def train_retrying_warned(train, figures, seeds, conditions: int, retrain: int, 
     ``train(keys [k, 2]) -> (out, Xc, Xp)``: a pytree of host arrays, the controllers' tracks on
     their ``conditions`` training starts and the policy's from the same starts (None: no policy
     judged), each with a leading axis over the keys; ``figures(X) -> per_seed``
-    (:func:`per_seed_figures`). Returns ``out``, ``Xc`` and ``Xp`` of the kept attempts, their
-    ``per_seed`` figures as ``{"controllers": ..., "policy": ...}``, the seconds spent in
-    ``train`` and a record per seed: ``{"kept": attempt, "attempts": [{"warning": text or None,
-    "collision_rate", "return_to_course_rate", "clearance_ratio_vs_demos", "policy": {the same
+    (:func:`~diffgcl.usv.scores.per_seed_figures`). Returns ``out``, ``Xc`` and ``Xp`` of the kept
+    attempts, their ``per_seed`` figures as ``{"controllers": ..., "policy": ...}``, the seconds
+    spent in ``train`` and a record per seed: ``{"kept": attempt, "attempts": [{"warning": text or
+    None, "collision_rate", "return_to_course_rate", "clearance_ratio_vs_demos", "policy": {the same
     three} or None}, ...]}`` (the unnamed figures are the controllers'); ``say(text)`` hears each
     warning and each retraining as it happens."""
     import time

@@ -153,7 +153,7 @@ class StampGlitch:
 
 @dataclass(frozen=True)
 class SynthConfig:
-    """What :func:`synthesize` writes.
+    """What :func:`~diffgcl.data.synth.dataset.synthesize` writes.
 
     episodes: per set (the seed: 19 and 47); lidar: per set; fmt: ``ros1`` | ``ros2-sqlite3`` |
     ``ros2-mcap``; bag_per: ``episode`` | ``set``; approach_m: range of start distances to the
