@@ -1,4 +1,4 @@
-"""Your own robot, end to end, on models the project does not tune for (issue 16).
+"""Your own robot, end to end, on models the project does not tune for.
 
 For each model — a planar reacher and a cart-pole written from their usual published
 descriptions (``models/reacher.xml``, ``models/cartpole.xml``) — this script plays two parts:

@@ -1,4 +1,4 @@
-"""GPS (trajectory optimisation) on the two-joint arm with its expert cost (issue 3, DESIGN §2).
+"""GPS (trajectory optimisation) on the two-joint arm with its expert cost (DESIGN §2).
 
 GPS's box2d arm setting: 5 samples per iteration, kl_step 0.2, step_mult in [0.01, 10], initial
 controller K = 0, k = 0, Σ = 0.1·I, exploration noise smoothed over σ = 2 steps, 10 iterations.

@@ -1,4 +1,4 @@
-"""A global policy on the arm from 4 training starts, judged from starts it never saw (issue 12).
+"""A global policy on the arm from 4 training starts, judged from starts it never saw.
 
 GPS's point: the local controllers need the simulator's state and one start each; the global
 policy acts on observations (joint angles and speeds, end-effector position) and should work from

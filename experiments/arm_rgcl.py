@@ -1,5 +1,4 @@
-"""rGCL on the two-joint arm: the seed's chapter 4 experiment, v1 and v2, over seeds and tasks
-(issues 6, 14 and 18).
+"""rGCL on the two-joint arm: the seed's chapter 4 experiment, v1 and v2, over seeds and tasks.
 
 For each schedule of the preset (``default``: v1 and v2 of ours; ``paper``: the seed's paper_v1
 and paper_v2; ``paper_v1`` / ``paper_v2`` alone), every seed set runs as ``jit(vmap(train))``

@@ -10,7 +10,7 @@
 4. Report the relative error of each identified parameter and the one-step / 10 s open-loop
    prediction error on the odd-numbered (held-out) episodes before and after; plot the tracks of
    each set around the pole, coloured by swerve side.
-5. Obstacles from scans (issue 15): ingest the same bags as if they had no obstacle topic, and
+5. Obstacles from scans: ingest the same bags as if they had no obstacle topic, and
    the "other boat" bags (:func:`diffgcl.data.synth.other_boat_config`: no markers, no obstacle
    topic, one bag per set with repositioning legs, every pole of a set in the water, radar point
    cloud with sea clutter) with ``other_boat_topics.yaml``. Report the largest pole error over
@@ -61,7 +61,7 @@ from diffgcl.runtime import prepare_process  # noqa: E402
 from diffgcl.sim import hull  # noqa: E402
 from diffgcl.sim.sensors import SensorLayout  # noqa: E402
 
-# Targets of issue 15.
+# Targets for the pole found from scans (largest error, m) and the radar beam's hit rate.
 POLE_ERROR_TARGET_M = {"lidar": 3.0, "radar_only": 5.0}
 RADAR_HIT_RATE_TARGET = 0.8
 
@@ -329,7 +329,7 @@ def main(argv=None) -> int:
         for f in result.fields
     }
 
-    # Obstacles from scans (issue 15).
+    # Obstacles from scans.
     t0 = time.perf_counter()
     layout = SensorLayout()
     odin_no_obstacle = default_topic_map().replace(obstacle=None)

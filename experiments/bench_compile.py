@@ -225,7 +225,10 @@ for model in ('reacher', 'cartpole'):
         from any_mjcf import expert_demos, tasks
         expert_demos(tasks()[model], path, seeds=[0, 1], demos_per_condition=3)
 if 'usv_fast' in entries:
-    from diffgcl.algorithms.usv import builtin_bags
+    try:
+        from diffgcl.usv import builtin_bags
+    except ImportError:  # a revision before the USV pipeline had a package of its own
+        from diffgcl.algorithms.usv import builtin_bags
     builtin_bags(fast=True, verbose=False)
 """
     subprocess.run([sys.executable, "-c", script], check=True, cwd=code, env=_env(code))

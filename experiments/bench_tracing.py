@@ -52,9 +52,9 @@ def worker(setting: str, cache: str) -> dict:
 
     import jax
 
-    from diffgcl.algorithms.usv import builtin_demos, fast_run_config, run_usv
     from diffgcl.data.synth import true_params
     from diffgcl.sim import hull
+    from diffgcl.usv import builtin_demos, fast_run_config, run_usv
 
     if not flags["jit_hull_step"]:
         hull.hull_step = hull.hull_step.__wrapped__  # the envs look it up in the module
@@ -98,7 +98,7 @@ def main(argv=None) -> int:
         print(json.dumps(worker(args.worker, args.cache)))
         return 0
 
-    from diffgcl.algorithms.usv import builtin_bags
+    from diffgcl.usv import builtin_bags
 
     builtin_bags(fast=True)  # written once, outside the timings
     results: dict = {}

@@ -1,4 +1,4 @@
-"""Inverse optimal control on a linear-quadratic problem with a known cost (issue 4).
+"""Inverse optimal control on a linear-quadratic problem with a known cost.
 
 A planar point mass (x = [p_x, p_y, v_x, v_y], u = acceleration, dt = 0.1, deterministic linear
 dynamics) with the true cost ``c(x, u) = (x − x*)ᵀQ(x − x*) + r‖u‖²`` at every step and at the end.

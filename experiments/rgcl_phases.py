@@ -1,5 +1,5 @@
-"""Where an rGCL iteration spends its time, and how well each phase batches over seeds (issue 6's
-sweep speed-up).
+"""Where an rGCL iteration spends its time, and how well each phase batches over seeds (what
+the sweep speed-up is made of).
 
 For the ``default`` v2 preset on the arm, each phase is timed as one jitted single-seed call and
 as one jitted ``vmap`` over N seeds sharded over the CPU's cores as one XLA device per core

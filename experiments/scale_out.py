@@ -1,4 +1,4 @@
-"""The same rGCL sweep in 1 process × 2 devices and in 2 processes × 1 device (issue 17).
+"""The same rGCL sweep in 1 process × 2 devices and in 2 processes × 1 device.
 
 Each layout is one ``diffgcl sweep`` command in a fresh process (the device count is fixed when
 JAX starts), the ``default`` preset, 32 seeds as one chunk of 32 runs (16 per device):

@@ -1,4 +1,4 @@
-"""USV obstacle avoidance learned from bags, end to end (issue 13).
+"""USV obstacle avoidance learned from bags, end to end.
 
 The built-in synthetic Odin-like bags (or ``--bags DIR --topics MAP``) → demonstrations
 (ingestion) → hull identification → the demos in the task frame (approach course = +x, pole
@@ -36,7 +36,7 @@ from diffgcl.cli.usv import parse_margins
 
 
 def fast_configs():
-    from diffgcl.algorithms.usv import fast_run_config
+    from diffgcl.usv import fast_run_config
 
     main = fast_run_config()
     radar = dataclasses.replace(
@@ -48,7 +48,7 @@ def fast_configs():
 
 
 def full_configs(seeds, heldout: int, heldout_seed: int = 1000):
-    from diffgcl.algorithms.usv import UsvRunConfig, UsvTaskConfig
+    from diffgcl.usv import UsvRunConfig, UsvTaskConfig
 
     task = UsvTaskConfig()
     main = UsvRunConfig(task=task, seeds=tuple(seeds), heldout=heldout, heldout_seed=heldout_seed)
@@ -86,7 +86,7 @@ def variant_summary(demos, config, manifest, truth, label: str) -> dict:
     from diffgcl.runtime import prepare_process
 
     prepare_process()
-    from diffgcl.algorithms.usv import run_usv
+    from diffgcl.usv import run_usv
 
     return run_usv(demos, config, manifest=manifest, true_params=truth).summary
 
@@ -103,7 +103,7 @@ def variant_result(pending, name: str) -> dict:
 
 
 def headline(main: dict, radar: dict | None) -> dict:
-    """The issue's keys from the runs' summaries."""
+    """The headline figures (the top-level JSON keys) from the runs' summaries."""
     rgcl = main.get("rgcl", {})
     out = {
         "episodes": rgcl.get("episodes"),
@@ -182,8 +182,8 @@ def main(argv=None) -> int:
 
     from diffgcl.algorithms.presets import usv as usv_preset
     from diffgcl.algorithms.presets import with_overrides
-    from diffgcl.algorithms.usv import builtin_demos, load_bag_demos, run_usv
     from diffgcl.data.synth import true_params
+    from diffgcl.usv import builtin_demos, load_bag_demos, run_usv
 
     t0 = time.perf_counter()
     if args.bags is not None:

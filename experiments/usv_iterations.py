@@ -1,4 +1,4 @@
-"""Each rGCL iteration's USV policy on held-out situations, beside its learned cost (issue 13).
+"""Each rGCL iteration's USV policy on held-out situations, beside its learned cost.
 
 The USV run judges the last iteration's global policy; this script judges every iteration's, per
 training seed, so that one can see how a figure moves while the run trains. Per iteration and
@@ -47,7 +47,7 @@ def main(argv=None) -> int:
     import jax.numpy as jnp
     import numpy as np
 
-    from diffgcl.algorithms import usv as U
+    from diffgcl import usv as U
     from diffgcl.algorithms.presets import usv as usv_preset
     from diffgcl.algorithms.presets import with_overrides
     from diffgcl.algorithms.rgcl import make_train, policy_learned_costs
@@ -74,7 +74,7 @@ def main(argv=None) -> int:
     rgcl = make_train(rgcl_config, base.train_env)
     batch = U.demo_batch_pooled(base.demos, env=base.env)
     print(f"rGCL + MDGPS, seeds {seeds}", flush=True)
-    (state, metrics), seconds = U._batched(rgcl.train, seeds, batch)
+    (state, metrics), seconds = U.run_over_seeds(rgcl.train, seeds, batch)
 
     def learned(env):
         fn = jax.vmap(lambda c, p: policy_learned_costs(rgcl, env, c, p))

@@ -28,8 +28,8 @@ def main(argv=None) -> int:
     from diffgcl.runtime import prepare_process
 
     prepare_process()
-    from diffgcl.algorithms.usv import UsvRunConfig, builtin_demos, run_usv
     from diffgcl.data.synth import true_params
+    from diffgcl.usv import UsvRunConfig, builtin_demos, run_usv
 
     demos, folder = builtin_demos()
     seeds = tuple(range(args.first_seed, args.first_seed + args.seeds))

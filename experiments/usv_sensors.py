@@ -1,4 +1,4 @@
-"""The USV task's simulated observations against what ingestion makes of the bags (issue 13).
+"""The USV task's simulated observations against what ingestion makes of the bags.
 
 The global policy trains on :meth:`diffgcl.envs.usv.UsvEnv.obs` and its cloned baseline on the
 ingested observations, so the two must agree. This script writes set-2 synthetic bags (LiDAR and

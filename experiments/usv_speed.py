@@ -1,5 +1,5 @@
 """Speed of USV rollouts with every range beam computed at every step, beside the same rollouts
-without sensors (issue 13).
+without sensors.
 
 B rollouts of T steps of the USV task env under ``jit(vmap)``: (a) the hull alone, with open-loop
 commands; (b) the same with the policy's whole observation (32 LiDAR + 16 radar beams as

@@ -1,4 +1,4 @@
-"""Bags from another boat (issue 15): the synthetic "other boat" layout (GNSS fix stamped late,
+"""Bags from another boat: the synthetic "other boat" layout (GNSS fix stamped late,
 NED odometry, ENU IMU, radar point cloud every 2.5 s with sea clutter, percent/degree commands
 on change, no obstacle topic, one bag per set with the repositioning legs, every pole of a set in
 the water) ingested with ``other_boat_topics.yaml``: segmentation without markers, poles from the

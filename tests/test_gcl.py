@@ -381,7 +381,8 @@ def load_lq_ioc():
 
 
 def test_lq_ioc_fast_meets_thresholds():
-    """The issue's fast IOC check; ~40 s on 2 cores (one jitted training run plus evaluation).
+    """The fast inverse-optimal-control check; ~40 s on 2 cores (one jitted training run plus
+    evaluation).
     The demos come from a known MaxEnt controller: the MaxEnt controller of the learned cost has
     the demonstrator's action covariance within 20 % (every eigenvalue of Σ*^{-1/2} Σ Σ*^{-1/2}
     at every step; measured 0.96–0.97)."""

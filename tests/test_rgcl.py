@@ -294,7 +294,7 @@ def test_seed_variant_model_samples_run(slider):
 @pytest.mark.slow
 @pytest.mark.parametrize("schedule", ["v1", "v2"])
 def test_default_preset_reaches_upright_on_the_arm(schedule):
-    """The issue's reliability target on a smaller scale: the ``default`` preset on the arm with
+    """The arm's reliability target on a smaller scale: the ``default`` preset on the arm with
     the built-in demos succeeds (DESIGN §2's strict test) on at least 7 of 8 seeds, and a fresh
     controller re-optimised on each learned cost succeeds on at least 6 of 8."""
     from diffgcl.algorithms.presets import default

@@ -14,14 +14,8 @@ import numpy as np
 import pytest
 
 from diffgcl.data.demos import DemoSet
-from diffgcl.data.synth import (
-    TRUE_FACTORS,
-    SynthConfig,
-    _batched_step,
-    draw_profiles,
-    simulate,
-    true_params,
-)
+from diffgcl.data.synth import TRUE_FACTORS, SynthConfig, draw_profiles, simulate, true_params
+from diffgcl.data.synth.operator_model import _batched_step
 from diffgcl.data.sysid import (
     SYSID_FIELDS,
     SysIdConfig,

@@ -1,4 +1,4 @@
-"""The USV pipeline (diffgcl.algorithms.usv): bags' demos into the task's layout, the scores of
+"""The USV pipeline (diffgcl.usv): bags' demos into the task's layout, the scores of
 held-out rollouts against hand-built tracks, and (slow) the whole run on a few tiny bags."""
 
 import json
@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from diffgcl.algorithms import usv as U
+from diffgcl import usv as U
 from diffgcl.data.demos import DemoSet
 from diffgcl.envs.usv import IX_RADIUS, encode_ranges, make_usv_env
 from diffgcl.sim import hull as hull_sim

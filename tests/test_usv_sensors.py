@@ -2,7 +2,7 @@
 diffgcl.envs.usv.UsvEnv.obs) against independent references: the ray-circle entry by brute
 force, the radar sectors by hand and against ingestion's own reduction, the LiDAR model against
 the synthetic generator's scans reduced by ingestion, the noise by Monte Carlo against the
-model's stated parameters, and one synthetic episode, simulated vs ingested (issue 13)."""
+model's stated parameters, and one synthetic episode, simulated vs ingested."""
 
 import dataclasses
 import tempfile
@@ -16,7 +16,8 @@ import pytest
 from scipy.stats import norm
 
 from diffgcl.data.scans import radar_sector_ranges
-from diffgcl.data.synth import SensorModel, _lidar_ranges
+from diffgcl.data.synth import SensorModel
+from diffgcl.data.synth.recording import _lidar_ranges
 from diffgcl.envs.usv import IX_RADIUS, make_usv_env
 from diffgcl.sim import hull as hull_sim
 from diffgcl.sim.sensors import (

@@ -73,20 +73,20 @@ def default(schedule: str = "v2") -> RGCLConfig:
     the rest use the current ones (30 iterations, see
     :func:`diffgcl.algorithms.expert.builtin_demos`).
 
-    * the temperature calibrated to the demos (``temperature="demos"``, issue 18;
-      ``docs/temperature.md``): the likelihood's own scale left the final controllers ~450
+    * the temperature calibrated to the demos (``temperature="demos"``;
+      ``docs/algorithms.md``): the likelihood's own scale left the final controllers ~450
       nats of action entropy broader than the demos' controller and their noisy samples
       succeeding in 3–5 % (v1 31/32 (91 %), v2 31/32 (100 %), after the v1 step and demo
-      covariance fixes of issue 14); calibrated from the start: v2 32/32 (100 %), noisy samples
+      covariance fixes); calibrated from the start: v2 32/32 (100 %), noisy samples
       90 %, entropy gap 73 nats; v1 32/32 (62 %) with its old cost update, 32/32 (97 %), noisy
       samples 98 %, gap 44 nats with v2's (LCR 3e-2, 40 Adam steps). Switching the temperature on
       late (v1, seeds 0–15) kept re-optimisation at 100 % but left the controllers broad (noisy
       samples 6–27 %): a broad controller narrows only a few nats per C-step under a steep cost.
-      The shipped preset, measured by ``experiments/arm_rgcl.py`` (``docs/arm.md``): v1 32/32
+      The shipped preset, measured by ``experiments/arm_rgcl.py`` (docs/measurements.md): v1 32/32
       (91 %), noisy samples 97 %, gap 53 nats on seeds 0–31 and 32/32 (84 %), 96 %, 40 nats on
       the held-out 1000–1031; v2 32/32 (100 %), 90 %, 73 nats and 32/32 (100 %), 94 %, 71 nats.
-      (v1's 97 % above came from the same settings given through ``--set`` before the last
-      commits of issue 14; the difference was not traced.)
+      (v1's 97 % above came from the same settings given through ``--set`` on an earlier
+      version of the code; the difference was not traced.)
 
     * a quadratic cost (``hidden=()``: ``y`` affine in the normalised state, so ``c`` is a PSD
       quadratic in x). The 2-layer ReLU network put the cost's minimum 0.05–0.2 rad from upright,
@@ -157,15 +157,15 @@ def default(schedule: str = "v2") -> RGCLConfig:
 
 
 def usv() -> RGCLConfig:
-    """The USV task (:mod:`diffgcl.algorithms.usv`): rGCL v2 on the hull with normalised actions,
+    """The USV task (:mod:`diffgcl.usv`): rGCL v2 on the hull with normalised actions,
     a cost of learned non-negative weights on a sailor's squared residuals (cross-track and
     heading error, surge and progress speed errors, sway, yaw rate, depth inside the task's
     clearance margins, by default from the demos (5, 10, 15, 20 m on the built-in bags;
-    :func:`diffgcl.algorithms.usv.margins_for_clearance`); ``network.form="weighted"``,
+    :func:`diffgcl.usv.margins_for_clearance`); ``network.form="weighted"``,
     :meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`) plus the actuators' limit barrier, and a
     global MDGPS policy on the boat's observations (noisy sensors in its training samples).
 
-    Differences from :func:`default` and why (docs/usv.md has the runs):
+    Differences from :func:`default` and why (docs/decisions.md has the runs):
 
     * the weighted form, not the Gram form on task features (``cost_features``): the Gram form's
       quadratic learned no valley along the course after the pole, and its policy circled (0 %
@@ -176,8 +176,8 @@ def usv() -> RGCLConfig:
     * ``kl_step`` 0.3 and ``max_step_mult`` 2 (ε ≤ 0.6 nats per step, 270 per iteration over
       the 450 training steps): with 1.0 and 10 the learned cost's controllers blew up at
       iterations 3–5 (true cost 10⁵–10⁷) and the boat circled with its nozzle hard over; the
-      hand-written cost's reference keeps 1.0 and 10 (:class:`~diffgcl.algorithms.usv.
-      UsvRunConfig`);
+      hand-written cost's reference keeps 1.0 and 10
+      (:class:`~diffgcl.usv.UsvRunConfig`);
     * 14 iterations, the last 3 on a frozen cost: at 30 the controllers still blew up late in
       some runs (true cost 10⁴–10¹⁰ from iteration 15 or 28 on) and the policy inherited it;
       up to iteration 14 the true cost fell steadily in every run seen;

@@ -1,5 +1,5 @@
 """``diffgcl usv``: USV obstacle avoidance learned from bags, end to end (argument parsing and
-printing; the pipeline is :func:`diffgcl.algorithms.usv.run_usv`, the pictures
+printing; the pipeline is :func:`diffgcl.usv.run_usv`, the pictures
 :func:`diffgcl.viz.usv.save_usv_plots`).
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
@@ -37,12 +37,12 @@ def parse_margins(text: str) -> tuple[float, ...]:
 
 
 def run_config(args):
-    """The :class:`~diffgcl.algorithms.usv.UsvRunConfig` that ``diffgcl usv`` runs for ``args``:
-    the default scale, or :func:`~diffgcl.algorithms.usv.fast_run_config` with ``--fast``; the
+    """The :class:`~diffgcl.usv.UsvRunConfig` that ``diffgcl usv`` runs for ``args``:
+    the default scale, or :func:`~diffgcl.usv.fast_run_config` with ``--fast``; the
     options given on the command line (``--set`` included) override either."""
     from diffgcl.algorithms.presets import usv as usv_preset
     from diffgcl.algorithms.presets import with_overrides
-    from diffgcl.algorithms.usv import METHODS, UsvRunConfig, UsvTaskConfig, fast_run_config
+    from diffgcl.usv import METHODS, UsvRunConfig, UsvTaskConfig, fast_run_config
 
     task = UsvTaskConfig(
         sets=tuple(args.sets.split(",")),
@@ -68,8 +68,8 @@ def run_config(args):
 
 
 def usv_command(args) -> int:
-    from diffgcl.algorithms.usv import builtin_demos, load_bag_demos, run_usv
     from diffgcl.io import check_output_folder
+    from diffgcl.usv import builtin_demos, load_bag_demos, run_usv
     from diffgcl.viz.usv import USV_FOLDER, save_usv_plots
 
     check_output_folder(args.out, USV_FOLDER, args.overwrite)

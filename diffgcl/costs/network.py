@@ -33,16 +33,16 @@ differentiable function of ``x`` (Gauss–Newton and the LQR differentiate throu
 quadratic in the raw state cannot say "keep away from the pole"; a quadratic in such features
 can.
 
-Weighted form (``CostNetworkConfig.form = "weighted"``): instead of the Gram form, the state cost
-is a non-negative weighted sum of squared residuals ``s(x) = e^ρ Σ_k e^{θ̃_k} (ρ_k(x) / rms_k)²``,
+Weighted form (``CostNetworkConfig.form = "weighted"``): instead of the Gram form, the state cost is
+a non-negative weighted sum of squared residuals ``s(x) = e^ρ Σ_k e^{θ̃_k} (ρ_k(x) / rms_k)²``,
 where each residual ``ρ_k`` is zero where a domain expert is content (for the USV: cross-track and
-heading error, speed error, soft proximity to the pole; :meth:`diffgcl.envs.usv.UsvEnv.
-cost_residuals`), ``rms_k`` is its root mean square on the data (from the normaliser: ``var +
-mean²``) and the log weights ``θ̃ = θ − mean(θ): [K]`` are what GCL learns (their ratios only:
-the overall scale is the temperature's). This is maximum-entropy IRL's linear
-cost in features, so matching the demos' feature expectations is what the likelihood asks; and
-with every weight positive the cost keeps its valley where every residual is zero (e.g. back on
-the course line once the pole is passed) whatever the weights learn.
+heading error, speed error, soft proximity to the pole;
+:meth:`diffgcl.envs.usv.UsvEnv.cost_residuals`), ``rms_k`` is its root mean square on the data (from
+the normaliser: ``var + mean²``) and the log weights ``θ̃ = θ − mean(θ): [K]`` are what GCL learns
+(their ratios only: the overall scale is the temperature's). This is maximum-entropy IRL's linear
+cost in features, so matching the demos' feature expectations is what the likelihood asks; and with
+every weight positive the cost keeps its valley where every residual is zero (e.g. back on the
+course line once the pole is passed) whatever the weights learn.
 
 The network is flax linen; everything outside it (``CostParams``, :class:`CostNetwork`) is plain,
 so the cost is a pure function of an explicit parameter pytree that jit/vmap/scan carry around.

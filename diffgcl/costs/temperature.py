@@ -1,4 +1,4 @@
-"""The learned cost's temperature, calibrated to the demonstrations' action precision (issue 18).
+"""The learned cost's temperature, calibrated to the demonstrations' action precision.
 
 The maximum-entropy model ``p(τ) ∝ exp(−c(τ))`` ties the cost's scale to how precise the expert
 is: under linear dynamics ``x' = A x + B u + c`` and a quadratic cost, the MaxEnt controller is
@@ -17,7 +17,7 @@ covariance (within 3 %), but on the arm the cost class cannot reproduce the demo
 — where the expert saturates a motor, the linearised dynamics give the action no effect, the
 learned controller's mean there is set by ``w_u`` alone and differs from the demos by ~2 rad/s
 RMS — and the likelihood explains that mismatch with noise: the fitted cost was ~250× too flat
-for the demos' precision (the ``docs/`` measurement notes have the numbers).
+for the demos' precision (docs/decisions.md has the numbers).
 
 Written for one condition; the caller averages ``ρ`` over conditions.
 """

@@ -1,14 +1,14 @@
 """System identification of the hull from demonstrations, by gradient descent through MJX.
 
-Problem: the default :class:`~diffgcl.sim.hull.HullParams` are a documented guess at Odin; the
-bags show how the boat really answers its commands. We fit a subset of the parameters,
+Problem: the default :class:`~diffgcl.sim.hull.HullParams` are a documented guess at Odin; the bags
+show how the boat really answers its commands. We fit a subset of the parameters,
 :data:`SYSID_FIELDS`, to the ingested trajectories by *multiple shooting*: the data are cut into
-short windows of ``window`` steps; each window is rolled out with :func:`~diffgcl.sim.hull.
-hull_step` from its measured first state under the recorded commands, and the loss is the mean
-squared, noise-normalised difference to the measured states (heading, velocities, yaw rate and
-actuator states; positions enter with a small weight). Short windows keep the loss close to
-quadratic in the parameters and the gradients sane; windows from all episodes are one batch
-(``vmap``), and the Adam iterations run inside one ``lax.scan``.
+short windows of ``window`` steps; each window is rolled out with
+:func:`~diffgcl.sim.hull.hull_step` from its measured first state under the recorded commands, and
+the loss is the mean squared, noise-normalised difference to the measured states (heading,
+velocities, yaw rate and actuator states; positions enter with a small weight). Short windows keep
+the loss close to quadratic in the parameters and the gradients sane; windows from all episodes are
+one batch (``vmap``), and the Adam iterations run inside one ``lax.scan``.
 
 Parametrisation: ``p_i = p_i^0 · exp(θ_i)`` (log-scale, so every parameter stays positive and
 all θ are O(1)); θ = 0 is the starting guess. Gradients are forward-mode (``jax.jacfwd``), the

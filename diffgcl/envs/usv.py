@@ -25,15 +25,14 @@ Observation (what the policy sees; the cost learns on the full state):
 The ranges enter in metres or, with ``range_encoding="saturated"``, through :func:`encode_ranges`
 (metres near the boat, about the same for everything far away).
 
-Ranges are what ingestion makes of the boat's recorded sensors (:class:`~diffgcl.sim.sensors.
-PoleSensorModel`, :func:`~diffgcl.sim.sensors.pole_beams`), so that a policy trained on them
-reads demos' observations alike: the LiDAR beams read the pole's scan returns as discs (about
-0.25 m nearer than its surface), the radar beams a point target at the pole's centre in the one
-sector that holds it; ``obs(x, key)`` draws their noise, dropouts and missed detections. The
-noise-free beams are differentiable in the state where they see the pole (MDGPS linearises the
-policy through them). :func:`pole_ranges`, the exact intersection of the layout's rays with the
-pole (the same numbers as ``mjx.ray`` in the hull's MJCF scene, tested), stays as the reference
-geometry.
+Ranges are what ingestion makes of the boat's recorded sensors
+(:class:`~diffgcl.sim.sensors.PoleSensorModel`, :func:`~diffgcl.sim.sensors.pole_beams`), so that a
+policy trained on them reads demos' observations alike: the LiDAR beams read the pole's scan returns
+as discs (about 0.25 m nearer than its surface), the radar beams a point target at the pole's centre
+in the one sector that holds it; ``obs(x, key)`` draws their noise, dropouts and missed detections.
+The noise-free beams are differentiable in the state where they see the pole (MDGPS linearises the
+policy through them). :func:`pole_ranges`, the exact intersection of the layout's rays with the pole
+(the same numbers as ``mjx.ray`` in the hull's MJCF scene, tested), stays as the reference geometry.
 
 Success (:meth:`UsvEnv.success`): the hull outline never touches the pole, and at the end the boat
 is back on course (cross-track below ``course_tolerance``, heading error below
@@ -122,9 +121,10 @@ def pole_ranges(layout: SensorLayout, x: Array, radius: Array) -> Array:
 
     Each ray leaves the mast (``layout.origin`` in the hull frame) horizontally; its distance to
     the pole is the entry point into the pole's circle (0 from inside), a beam reads its shortest
-    ray, and a beam with no hit reads its maximum range (as :func:`~diffgcl.sim.sensors.
-    range_readings` does with ``mjx.ray``). The observation uses :class:`~diffgcl.sim.sensors.
-    PoleSensorModel` instead (what ingestion makes of the recorded sensors).
+    ray, and a beam with no hit reads its maximum range (as
+    :func:`~diffgcl.sim.sensors.range_readings` does with ``mjx.ray``). The observation uses
+    :class:`~diffgcl.sim.sensors.PoleSensorModel` instead (what ingestion makes of the recorded
+    sensors).
     """
     pole = pole_in_hull_frame(x)
     origin = jnp.asarray(layout.origin[:2], x.dtype)
@@ -409,7 +409,7 @@ def make_usv_env(
     proximity_margins=PROXIMITY_MARGINS,
 ) -> UsvEnv:
     """The USV task env with conditions ``x0: [C, 11]`` (task frame; see
-    :func:`diffgcl.data.task_frame.usv_conditions`; default :func:`default_conditions`), hull
+    :func:`diffgcl.usv.task.make_task_env`; default :func:`default_conditions`), hull
     ``params`` (default nominal; e.g. identified from bags), sensor ``layout``, ``cruise_speed``
     (m/s; the thrust that holds it is the action offset), horizon T, the policy's
     ``observation`` set (``OBSERVATIONS``) and how it reads ranges (``range_encoding``, of

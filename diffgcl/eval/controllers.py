@@ -1,4 +1,4 @@
-"""How well do learned controllers fit the demonstrations as a *distribution* (issue 18)?
+"""How well do learned controllers fit the demonstrations as a *distribution*?
 
 GCL fits the maximum-entropy model ``p(τ) ∝ exp(−c(τ))`` to the demos, and the MaxEnt C-step
 turns the learned cost into linear-Gaussian controllers whose covariance is the inverse action

@@ -18,7 +18,7 @@ the initial controller (GPS instead runs a first S-step to "catch the policy up"
 Everything here is pure and written for one observation; vmap at the call site. The action
 functions :meth:`GaussianPolicy.mean_action` / :meth:`GaussianPolicy.sample_action` take an
 explicit noise or key and run inside ``lax.scan`` rollouts
-(:func:`diffgcl.sim.rollout.rollout_policy`, :func:`diffgcl.sim.rollout.sample_policy`).
+(:func:`diffgcl.sim.rollout.rollout_policy`, :func:`diffgcl.sim.rollout.sample_observed`).
 """
 
 from __future__ import annotations

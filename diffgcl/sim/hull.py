@@ -110,9 +110,9 @@ class HullParams:
     # resistance; sway and yaw were tuned (a grid search over Y_v, N_r, N_v, N_|r|r) so that the
     # manoeuvring figures come out like those of a ~30 kn water-jet boat. Measured with
     # experiments/hull_report.py: top speed 29.9 kn; turning diameter 4.45 L at full nozzle and
-    # thrust (22 kn in the turn, 28°/s, drift 3°); 10/10 zig-zag overshoots 8.4° and 12.4°; crash
-    # stop 116 m (11 L) -- long for a water-jet boat, because quadratic resistance has no planing
-    # hump and the brief's reverse thrust is only 40 % after a 1.5 s lag.
+    # thrust (22 kn in the turn, 28°/s, drift 3°); 10/10 zig-zag overshoots 8.4° and 12.4°;
+    # crash-stop distance 116 m (11 L) -- long for a water-jet boat, because quadratic resistance
+    # has no planing hump and the brief's reverse thrust is only 40 % after a 1.5 s lag.
     # Surge: resistance ≈ 12 kN at 30 kn (15.43 m/s), i.e. resistance/weight ≈ 0.16, typical of a
     # planing hull near top speed; 20 % of it linear (X_u), 80 % quadratic (X_|u|u).
     damping_u: float = 160.0  # X_u     [N s/m]

@@ -1,4 +1,4 @@
-"""Pictures of a USV run (:class:`diffgcl.algorithms.usv.UsvRun`): the held-out tracks of each
+"""Pictures of a USV run (:class:`diffgcl.usv.UsvRun`): the held-out tracks of each
 policy beside the demos, relative to the pole, and the learned cost around the pole.
 
 :func:`save_usv_plots` writes them (and the run's ``summary.json``) into a run folder through

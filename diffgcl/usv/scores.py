@@ -1,0 +1,102 @@
+"""The USV task's figures of a set of rollouts against the demos: collision, minimum clearance
+and its ratio to the demos', back on course, side passed, path distance to the nearest demo
+(:func:`score_rollouts`), and the main ones per training seed (:func:`per_seed_figures`)."""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from diffgcl.envs.usv import UsvEnv
+from diffgcl.sim import hull as hull_sim
+
+
+def path_distance_to_demos(X: np.ndarray, demo_X: np.ndarray) -> np.ndarray:
+    """[B] mean distance (m) of each rollout's positions ``X: [B, T+1, 11]`` to the nearest point
+    of the nearest demo path ``demo_X: [N, T+1, 11]``, both relative to their own pole."""
+    P = X[..., :2] - X[:, :1, hull_sim.SL_OBS]
+    Q = demo_X[..., :2] - demo_X[:, :1, hull_sim.SL_OBS]
+    out = np.empty(P.shape[0])
+    for b in range(P.shape[0]):
+        d = np.linalg.norm(P[b][None, :, None, :] - Q[:, None, :, :], axis=-1)  # [N, T+1, T+1]
+        out[b] = d.min(axis=2).mean(axis=1).min()
+    return out
+
+
+def trajectory_metrics(env: UsvEnv, X) -> dict[str, np.ndarray]:
+    """:meth:`UsvEnv.metrics` of each rollout ``X: [B, T+1, 11]``, as NumPy arrays [B]."""
+    return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(env.metrics))(jnp.asarray(X)).items()}
+
+
+def straight_side(X) -> np.ndarray:
+    """The side (+1 port, −1 starboard, as :meth:`UsvEnv.metrics`' ``side``) on which each rollout
+    ``X: [B, T+1, 11]`` would pass its pole if it sailed straight on from its start: the sign of
+    the lateral offset from the pole at the pole's distance along the start heading."""
+    x0 = np.asarray(X)[:, 0]
+    ahead = x0[:, hull_sim.IX_OBS_X] - x0[:, hull_sim.IX_PX]
+    lateral = x0[:, hull_sim.IX_PY] + ahead * np.tan(x0[:, hull_sim.IX_PSI])
+    return np.sign(lateral - x0[:, hull_sim.IX_OBS_Y])
+
+
+def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
+    """The USV figures of rollouts ``X: [B, T'+1, 11]`` against the demos ``demo_X: [N, T+1, 11]``
+    (T' ≥ T: the evaluation may run past the demos' window).
+
+    ``return_to_course_rate``: on course at the end (cross-track and heading within the env's
+    tolerances, :meth:`UsvEnv.back_on_course`); ``returned_in_window_rate``: back at the course
+    line within the demos' window (:meth:`UsvEnv.returned_to_course` on the first T+1 states, the
+    figure the demos have too); collision rate; the median minimum clearance and its ratio to the
+    demos' median; the median path distance to the nearest demo (first T+1 states); the share of
+    port passes beside the demos'; ``straight_side_share``: the share that pass on the side they
+    would have passed on sailing straight on (:func:`straight_side`; about 0.5 for a side picked
+    at random), beside the demos'."""
+    X = np.asarray(X)
+    T1 = demo_X.shape[1]
+    m = trajectory_metrics(env, X)
+    w = trajectory_metrics(env, X[:, :T1])
+    d = trajectory_metrics(env, demo_X)
+    demo_clearance = float(np.median(d["min_clearance"]))
+    clearance = float(np.median(m["min_clearance"]))
+    return {
+        "episodes": int(m["collision"].shape[0]),
+        "collision_rate": float(m["collision"].mean()),
+        "return_to_course_rate": float(m["back_on_course"].mean()),
+        "returned_in_window_rate": float(w["returned_to_course"].mean()),
+        "demo_returned_in_window_rate": float(d["returned_to_course"].mean()),
+        "success_rate": float(m["success"].mean()),
+        "min_clearance_median_m": clearance,
+        "demo_min_clearance_median_m": demo_clearance,
+        "clearance_ratio_vs_demos": clearance / demo_clearance,
+        "final_cross_track_median_m": float(np.median(m["final_cross_track"])),
+        "path_distance_to_demos_median_m": float(
+            np.median(path_distance_to_demos(X[:, :T1], demo_X))
+        ),
+        "port_share": float(np.mean(m["side"] > 0)),
+        "demo_port_share": float(np.mean(d["side"] > 0)),
+        "straight_side_share": float(np.mean(m["side"] == straight_side(X))),
+        "demo_straight_side_share": float(np.mean(d["side"] == straight_side(demo_X))),
+    }
+
+
+def per_seed_figures(env: UsvEnv, tracks, demo_clearance_m: float) -> dict:
+    """Collision rate, on course at the end, clearance ratio (over the demos' median minimum
+    clearance ``demo_clearance_m``), share of port passes and of passes on the straight-on side
+    (:func:`straight_side`) of each training seed's tracks ``[S, B, T+1, 11]``, each a list over
+    the seeds."""
+    tracks = np.asarray(tracks)
+    S = tracks.shape[0]
+    flat = tracks.reshape(-1, *tracks.shape[2:])
+    m = trajectory_metrics(env, flat)  # one call, all seeds
+    per = {k: v.reshape(S, -1) for k, v in m.items()}
+    return {
+        "collision_rate": per["collision"].mean(axis=1).tolist(),
+        "return_to_course_rate": per["back_on_course"].mean(axis=1).tolist(),
+        "clearance_ratio_vs_demos": (
+            np.median(per["min_clearance"], axis=1) / demo_clearance_m
+        ).tolist(),
+        "port_share": (per["side"] > 0).mean(axis=1).tolist(),
+        "straight_side_share": (per["side"] == straight_side(flat).reshape(S, -1))
+        .mean(axis=1)
+        .tolist(),
+    }
