@@ -76,12 +76,17 @@ def _instrument(record: dict) -> None:
     import jax
     from jax._src import compiler
 
+    traces = record.setdefault("traces", {})
+
     def listen(event: str, duration: float, **kwargs) -> None:
         key = EVENTS.get(event)
         if key is not None:
             record[key] += duration
             if key == "compile_s":
                 record["programs"] += 1
+            if key == "trace_s":
+                name = str(kwargs.get("fun_name", "?"))
+                traces[name] = traces.get(name, 0.0) + duration
 
     jax.monitoring.register_event_duration_secs_listener(listen)
     original = compiler.compile_or_get_cached
@@ -196,6 +201,8 @@ def worker(entry: str, jax_cache: str, demos_dir: Path) -> dict:
         raise SystemExit(f"unknown entry point {entry!r}; choose from {ENTRIES}")
     wall = time.perf_counter() - t0
     record["big_programs"].sort(key=lambda p: -p["compile_s"])
+    top = sorted(record.pop("traces").items(), key=lambda kv: -kv[1])[:15]
+    record["slowest_traces"] = [{"name": n, "trace_s": round(t, 2)} for n, t in top]
     busy = record["trace_s"] + record["lower_s"] + record["compile_s"]
     return {**record, "wall_s": wall, "run_s": max(0.0, wall - busy), "figures": figures}
 
