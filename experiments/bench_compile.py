@@ -174,8 +174,8 @@ def _usv_fast() -> dict:
         path = Path(out) / "usv.json"
         usv_avoidance.main(["--fast", "--json", str(path), "--out", str(Path(out) / "run")])
         summary = json.loads(path.read_text())
-    rgcl = summary.get("rgcl", {})
-    return {k: rgcl.get(k) for k in ("collision_rate", "return_to_course_rate")}
+    keys = ("collision_rate", "return_to_course_rate", "clearance_ratio_vs_demos")
+    return {k: summary.get(k) for k in (*keys, "bc_collision_rate", "radar_only_collision_rate")}
 
 
 def worker(entry: str, jax_cache: str, demos_dir: Path) -> dict:

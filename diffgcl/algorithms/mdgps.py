@@ -176,25 +176,15 @@ def policy_actor(settings: PolicySettings, env: Env) -> tuple[Callable, tuple]:
     """``(act, name)``: the policy's action ``act(params, o, eps)`` and the name its simulator
     programs go by (the same for every policy of these settings on this env)."""
     policy = make_policy(settings, env)
-
-    def act(params, o, eps):
-        return policy.sample_action(params, o, eps)
-
-    dtype = jnp.asarray(env.initial_states()).dtype
-    return act, ("policy", settings.network, env.dO, env.dU, str(dtype))
+    return policy.sample_action, ("policy", policy)
 
 
 def policy_noise_free_rollouts(settings: PolicySettings, env: Env, params, x0: Array):
     """Host side: every seed's policy (``params`` with a leading [S] axis) noise-free from the
     starts ``x0: [B, dX]``, with the env's staged simulator: a Trajectory [S, B]."""
-    from diffgcl.algorithms.staged import staged_simulator
+    from diffgcl.algorithms.staged import policy_rollouts
 
-    act, name = policy_actor(settings, env)
-    S = jax.tree.leaves(params)[0].shape[0]
-    x0 = jnp.broadcast_to(jnp.asarray(x0)[None], (S, *jnp.shape(x0)))
-    zeros = jnp.zeros((*x0.shape[:-1], env.horizon, env.dU), x0.dtype)
-    sim = staged_simulator(env)
-    return sim.policy_rollouts(act, params, x0, zeros, shared=1, name=name)
+    return policy_rollouts(env, make_policy(settings, env), params, x0)
 
 
 def make_policy_phases(
@@ -351,8 +341,8 @@ class MDGPSMetrics:
 
 class MDGPS(NamedTuple):
     """The pure functions of :func:`make_mdgps`: init(key, hparams=None) -> MDGPSState;
-    iteration(state, key) -> (state, metrics), which is ``update(state, simulate(sim,
-    draw(state, key)), key)``; train(key, hparams=None) -> (state, metrics [iterations]);
+    iteration(state, key) -> (state, metrics), which is ``update(state, key, simulate(sim,
+    draw(state, key)))``; train(key, hparams=None) -> (state, metrics [iterations]);
     policy_phases: the :class:`PolicyPhases` (policy, rollouts)."""
 
     init: Callable[..., MDGPSState]
@@ -362,6 +352,7 @@ class MDGPS(NamedTuple):
     draw: Callable[[MDGPSState, PRNGKey], MDGPSRequest]
     simulate: Callable[..., MDGPSSimulated]
     update: Callable[..., tuple[MDGPSState, MDGPSMetrics]]
+    keyed: bool = True  # update(state, key, sims): the S-step draws from the iteration's key
 
 
 @struct.dataclass
@@ -471,7 +462,7 @@ def make_mdgps(
         key_sample, key_obs, _ = jax.random.split(key, 3)
         return draw_samples(state.gps, state.policy, key_sample, key_obs)
 
-    def update(state: MDGPSState, sims: MDGPSSimulated, key: PRNGKey):
+    def update(state: MDGPSState, key: PRNGKey, sims: MDGPSSimulated):
         _, _, key_s = jax.random.split(key, 3)
         samples = phases.fit_samples(sims.X, sims.U, sims.mean_X, sims.A, sims.B)
         anchor = policy_phases.linearise(state.policy, sims.O_clean, sims.J_obs, sims.X)
@@ -487,7 +478,7 @@ def make_mdgps(
         return MDGPSState(gps=gps, policy=policy), metrics
 
     def iteration(state: MDGPSState, key: PRNGKey) -> tuple[MDGPSState, MDGPSMetrics]:
-        return update(state, simulate(sim, draw(state, key)), key)
+        return update(state, key, simulate(sim, draw(state, key)))
 
     def train(key: PRNGKey, hparams: GPSHyperparams | None = None):
         key_init, key_iter = jax.random.split(key)

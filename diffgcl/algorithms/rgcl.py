@@ -292,7 +292,8 @@ class RGCL(NamedTuple):
     v2's iteration in parts, for a host loop that runs the simulator as programs of its own
     (:mod:`diffgcl.algorithms.staged`; None for v1): draw(state, key_loop) -> request,
     simulate(sim, request) -> the simulator's results, update(state, key_loop, demos, sims) ->
-    (state, metrics) — ``run`` is these three traced into a ``lax.scan``.
+    (state, metrics) — ``run`` is these three traced into a ``lax.scan``; iterations: the
+    config's.
     """
 
     train: Callable[..., tuple[RGCLState, RGCLMetrics]]
@@ -305,6 +306,7 @@ class RGCL(NamedTuple):
     draw: Callable | None = None
     simulate: Callable | None = None
     update: Callable | None = None
+    iterations: int = 0
 
 
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
@@ -781,6 +783,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         draw=draw_v2 if v2 else None,
         simulate=simulate_samples if v2 else None,
         update=update_v2 if v2 else None,
+        iterations=config.iterations,
     )
 
 

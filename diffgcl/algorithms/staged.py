@@ -92,10 +92,12 @@ def noise_free_rollouts(env, controller, x0):
 
 def run_gps_seeds(gps, keys, iterations: int, env, update_args=(), update_axes=(), hparams=None):
     """GPS-like iterations for a batch of seeds as a staged loop (the same results as
-    ``jax.vmap(gps.train)``): ``gps`` has ``init(key, hparams)``, ``draw(state, key)``,
-    ``simulate(sim, request)`` and ``update(state, *update_args, sims)``; ``keys: [S, 2]`` (split
-    into the init key and one key per iteration as ``train`` does). Returns (state, metrics
-    [S, iterations, ...], X_final [S, C, T+1, dX]: the final controllers' noise-free rollouts)."""
+    ``jax.vmap(gps.train)``): ``gps`` has ``init(key[, hparams])``, ``draw(state, key)``,
+    ``simulate(sim, request)`` and ``update(state, *update_args, sims)`` (or, with a ``keyed``
+    attribute that is true, ``update(state, key, *update_args, sims)`` with the iteration's
+    key); ``keys: [S, 2]`` (split into the init key and one key per iteration as ``train``
+    does). Returns (state, metrics [S, iterations, ...], X_final [S, C, T+1, dX]: the final
+    controllers' noise-free rollouts)."""
     import jax.numpy as jnp
 
     def split(key):
@@ -104,17 +106,65 @@ def run_gps_seeds(gps, keys, iterations: int, env, update_args=(), update_axes=(
 
     key_init, key_iter = jax.jit(jax.vmap(split))(keys)
     if hparams is None:
-        init = jax.jit(jax.vmap(lambda k: gps.init(k)))
-        state = init(key_init)
+        state = jax.jit(jax.vmap(lambda k: gps.init(k)))(key_init)
     else:
         state = jax.jit(jax.vmap(gps.init))(key_init, hparams)
-    loop = StagedLoop(
-        gps.draw, gps.simulate, gps.update, staged_simulator(env), (0,), tuple(update_axes)
-    )
+    keyed = getattr(gps, "keyed", False)
+    axes = ((0,) if keyed else ()) + tuple(update_axes)
+    loop = StagedLoop(gps.draw, gps.simulate, gps.update, staged_simulator(env), (0,), axes)
     metrics = []
     for i in range(iterations):
-        state, m = loop.step(state, (key_iter[:, i],), tuple(update_args))
+        args = ((key_iter[:, i],) if keyed else ()) + tuple(update_args)
+        state, m = loop.step(state, (key_iter[:, i],), args)
         metrics.append(m)
     gps_state = state.gps if hasattr(state, "gps") else state
     X, _ = noise_free_rollouts(env, gps_state.controller, jnp.asarray(gps_state.x0))
     return state, stack_metrics(metrics), X
+
+
+def run_rgcl(rgcl, keys, demos, env, hparams=None):
+    """rGCL for a batch of seeds (``keys: [S, 2]``, ``rgcl`` from
+    :func:`~diffgcl.algorithms.rgcl.make_train`): v2 as a staged loop, v1 (no staged iteration)
+    as one traced program. The same results as ``jax.vmap(rgcl.train, in_axes=(0, None))``:
+    (state, metrics [S, iterations, ...])."""
+    if rgcl.update is None:
+        train = jax.jit(vmap_over_devices(rgcl.train, in_axes=(0, None, 0)))
+        if hparams is None:
+            hp = rgcl.default_hparams()
+            hparams = jax.tree.map(lambda a: np.broadcast_to(a, (keys.shape[0],)), hp)
+        return train(keys, demos, hparams)
+    key_init, key_loop = jax.jit(jax.vmap(rgcl.split_key))(keys)
+    if hparams is None:
+        hp = rgcl.default_hparams()
+        hparams = jax.tree.map(lambda a: np.broadcast_to(a, (keys.shape[0],)), hp)
+    state = jax.jit(vmap_over_devices(rgcl.init, in_axes=(0, None, 0)))(key_init, demos, hparams)
+    loop = StagedLoop(rgcl.draw, rgcl.simulate, rgcl.update, staged_simulator(env), (0,), (0, None))
+    return loop.run(state, rgcl.iterations, draw_args=(key_loop,), update_args=(key_loop, demos))
+
+
+def policy_rollouts(env, policy, params, x0, keys=None, *, obs_noise: bool = False):
+    """Host side: noise-free-action rollouts [S, B] of global policies (``params`` with a
+    leading seed axis S) from ``x0: [B, dX]`` with the env's staged simulator; with
+    ``obs_noise``, sensor noise from one key per seed (``keys: [S, 2]``, drawn as
+    :func:`diffgcl.eval.policy.policy_rollouts` draws it, so the rollouts are the same)."""
+    import jax.numpy as jnp
+
+    S = jax.tree.leaves(params)[0].shape[0]
+    x0 = jnp.asarray(x0)
+    B = x0.shape[0]
+    x0 = jnp.broadcast_to(x0[None], (S, *x0.shape))
+    zeros = jnp.zeros((S, B, env.horizon, env.dU), x0.dtype)
+    obs_key = None
+    if obs_noise:
+        if keys is None:
+            raise ValueError("policy_rollouts: sensor noise needs one key per seed")
+
+        def per_rollout(key):
+            _, key_obs = jax.random.split(key)
+            return jax.random.split(key_obs, B)
+
+        obs_key = jax.jit(jax.vmap(per_rollout))(keys)
+    sim = staged_simulator(env)
+    return sim.policy_rollouts(
+        policy.sample_action, params, x0, zeros, obs_key, shared=1, name=("policy", policy)
+    )

@@ -70,11 +70,9 @@ def heldout_starts(env: UsvEnv, ranges: SituationRanges, key: PRNGKey, n: int) -
 def policy_tracks(env: UsvEnv, policy, params, x0, keys: Array) -> np.ndarray:
     """Noise-free-action rollouts [S, B, T+1, 11] of global policies (``params`` with a leading
     seed axis S, one key each in ``keys: [S, 2]``) from ``x0: [B, 11]``, with the env's sensor
-    noise in their observations (the boat's sensors are never noise-free); one compiled program
-    for all seeds."""
-    from diffgcl.eval.policy import policy_rollouts
+    noise in their observations (the boat's sensors are never noise-free); the env's staged
+    simulator runs them (one compiled program for every policy of these settings)."""
+    from diffgcl.algorithms.staged import policy_rollouts
 
-    def one(p, k):
-        return policy_rollouts(env, policy, p, jnp.asarray(x0), k, obs_noise=True).X
-
-    return np.asarray(jax.jit(jax.vmap(one))(params, keys))
+    traj = policy_rollouts(env, policy, params, x0, keys, obs_noise=True)
+    return np.asarray(traj.X)

@@ -267,16 +267,15 @@ def run_usv(
         )
 
     if "rgcl" in config.methods:
-        from diffgcl.algorithms.rgcl import final_rollouts, make_train
+        from diffgcl.algorithms.rgcl import make_train
+        from diffgcl.algorithms.staged import noise_free_rollouts, run_rgcl
 
         _say(verbose, f"rGCL + MDGPS on the identified hull, seeds {list(config.seeds)}")
         rgcl = make_train(rgcl_config, train_env)
-        train = jax.jit(jax.vmap(rgcl.train, in_axes=(0, None)))
-        controllers = jax.jit(jax.vmap(lambda c: final_rollouts(train_env, c)))
 
         def train_seeds(keys):
-            state, metrics = jax.block_until_ready(train(keys, batch))
-            Xc = controllers(state.gps.controller)
+            state, metrics = jax.block_until_ready(run_rgcl(rgcl, keys, batch, train_env))
+            Xc, _ = noise_free_rollouts(train_env, state.gps.controller, state.gps.x0)
             # The policy from the same starts, its sensor noise drawn from the training key.
             sensor_keys = jax.vmap(lambda k: jax.random.fold_in(k, SENSOR_NOISE_FOLD))(keys)
             x0 = train_env.initial_states()
@@ -314,6 +313,7 @@ def run_usv(
 
     if "expert" in config.methods:
         from diffgcl.algorithms.mdgps import MDGPSConfig, make_mdgps
+        from diffgcl.algorithms.staged import run_gps_seeds
 
         _say(verbose, "MDGPS with the hand-written cost (reference)")
         gps = dataclasses.replace(
@@ -327,7 +327,10 @@ def run_usv(
         md = make_mdgps(
             MDGPSConfig(gps=gps, policy=rgcl_config.policy), train_env, train_env.expert_cost
         )
-        (state, _), seconds = run_over_seeds(md.train, config.seeds)
+        t0 = time.perf_counter()
+        keys = jnp.stack([training_key(s) for s in config.seeds])
+        state, _, _ = run_gps_seeds(md, keys, gps.iterations, train_env)
+        seconds = time.perf_counter() - t0
         summary["expert"] = {"seconds": seconds}
         judge("expert", md.policy_phases.policy, state.policy.params)
 
