@@ -125,7 +125,8 @@ class PolicyPhases(NamedTuple):
     init(key, O=None) -> PolicyState (normaliser from observations ``O: [..., dO]``, else from
     the initial controllers' samples); draw(state, key, n) -> PolicyRequest (n noisy rollouts per
     condition and the noise-free one); simulate(sim, request) -> SimulatedPolicy;
-    observe(sim, X, key) -> O [C, N, T+1, dO] (sensor noise with ``obs_noise``); observe_at(sim,
+    observation_keys(key, shape) -> one sensor-noise key per state (None without ``obs_noise``);
+    observe(sim, X, keys) -> O [C, N, T+1, dO] (sensor noise with the keys); observe_at(sim,
     X) -> (O [C, N, T, dO], J [C, N, T, dO, dX]) noise-free observations and their Jacobians at
     the states 0 .. T−1; linearise(state, O, J, X) -> LinearGaussianController [C];
     s_step(state, key, X, O, controllers) -> (PolicyState, SStepMetrics); rollouts(state, x0) ->
@@ -137,6 +138,7 @@ class PolicyPhases(NamedTuple):
     init: Callable[..., PolicyState]
     draw: Callable[..., PolicyRequest]
     simulate: Callable[..., SimulatedPolicy]
+    observation_keys: Callable[..., Array | None]
     observe: Callable[..., Array]
     observe_at: Callable[..., tuple[Array, Array]]
     linearise: Callable[..., LinearGaussianController]
@@ -212,11 +214,17 @@ def make_policy_phases(
     smooth = gps_config.smooth_sigma
     act, name = policy_actor(settings, env)
 
-    def observe(sim: Simulator, X: Array, key: PRNGKey) -> Array:
+    def observation_keys(key: PRNGKey, shape: tuple[int, ...]) -> Array | None:
+        """One sensor-noise key per state of a batch of states of ``shape`` (None without
+        ``obs_noise``)."""
         if not settings.obs_noise:
-            return sim.observations(X)
-        keys = jax.random.split(key, X.shape[:-1]).reshape(*X.shape[:-1], -1)
-        return sim.observations(X, keys)
+            return None
+        return jax.random.split(key, shape).reshape(*shape, -1)
+
+    def observe(sim: Simulator, X: Array, keys: Array | None) -> Array:
+        """What the policy sees at states X [..., dX] (``keys`` [..., 2] from
+        :func:`observation_keys`; None: exact sensors)."""
+        return sim.observations(X) if keys is None else sim.observations(X, keys)
 
     def observe_at(sim: Simulator, X: Array) -> tuple[Array, Array]:
         return sim.observation_jacobians(X[..., :-1, :])
@@ -229,7 +237,7 @@ def make_policy_phases(
             noise = jax.vmap(lambda k: noise_of(k, N))(jax.random.split(key_samples, C))
             x0 = jnp.broadcast_to(X0[:, None], (C, N, env.dX))
             X = sim.controller_rollouts(ctrl, x0, noise).X
-            O = observe(sim, X, key_obs)
+            O = observe(sim, X, observation_keys(key_obs, X.shape[:-1]))
         net = settings.network
         norm = fit_obs_normaliser(O, net.obs_std_floor, rel_floor=net.obs_std_rel_floor)
         return learner.init(policy.init(key_net, norm))
@@ -297,6 +305,7 @@ def make_policy_phases(
         init=init,
         draw=draw,
         simulate=simulate,
+        observation_keys=observation_keys,
         observe=observe,
         observe_at=observe_at,
         linearise=linearise,
@@ -359,12 +368,12 @@ class MDGPS(NamedTuple):
 class MDGPSRequest:
     """One MDGPS iteration's requests: gps (the local controllers': N noisy samples and the
     noise-free rollout, or only the latter when sampling on policy) and policy (its noise-free
-    rollout, and N noisy samples when sampling on policy); key_obs: the sensor noise of the
-    samples' observations."""
+    rollout, and N noisy samples when sampling on policy); obs_keys: [C, N, T+1, 2] the sensor
+    noise of the samples' observations (None without ``obs_noise``)."""
 
     gps: SampleRequest
     policy: PolicyRequest
-    key_obs: Array
+    obs_keys: Array | None
 
 
 @struct.dataclass
@@ -395,10 +404,12 @@ def make_policy_sampling(phases, policy_phases: PolicyPhases, settings: PolicySe
 
     def draw(gps: GPSState, policy: PolicyState, key_sample: PRNGKey, key_obs) -> MDGPSRequest:
         on = settings.sample_on_policy
+        gps_request = phases.draw(gps, key_sample, 0 if on else N)
+        C, _, T, _ = gps_request.noise.shape
         return MDGPSRequest(
-            gps=phases.draw(gps, key_sample, 0 if on else N),
+            gps=gps_request,
             policy=policy_phases.draw(policy, key_sample, N if on else 0),
-            key_obs=key_obs,
+            obs_keys=policy_phases.observation_keys(key_obs, (C, N, T + 1)),
         )
 
     def simulate(sim: Simulator, request: MDGPSRequest) -> MDGPSSimulated:
@@ -413,7 +424,7 @@ def make_policy_sampling(phases, policy_phases: PolicyPhases, settings: PolicySe
             local = phases.simulate(sim, request.gps)
             pol = policy_phases.simulate(sim, request.policy)
             X, U, A, B = local.X[..., :-1, :, :], local.U[..., :-1, :, :], local.A, local.B
-        O = policy_phases.observe(sim, X, request.key_obs)
+        O = policy_phases.observe(sim, X, request.obs_keys)
         O_clean, J = policy_phases.observe_at(sim, X)
         return MDGPSSimulated(
             X=X,

@@ -568,7 +568,8 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         if policy_phases is not None:
             # The observation normaliser comes from what the demonstrator's sensors would show.
             key_policy, key_obs = jax.random.split(jax.random.fold_in(key, 1))
-            policy = policy_phases.init(key_policy, policy_phases.observe(sim, demos.X, key_obs))
+            keys = policy_phases.observation_keys(key_obs, demos.X.shape[:-1])
+            policy = policy_phases.init(key_policy, policy_phases.observe(sim, demos.X, keys))
         return RGCLState(
             gps=gps,
             cost=cost,
