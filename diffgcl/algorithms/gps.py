@@ -154,7 +154,7 @@ class GPSMetrics:
 class GPS(NamedTuple):
     """The pure functions returned by :func:`make_gps`."""
 
-    init: Callable[..., GPSState]  # (key, hparams=None)
+    init: Callable[..., GPSState]  # (key, hparams=None, controller=None)
     iteration: Callable[[GPSState, PRNGKey], tuple[GPSState, GPSMetrics]]
     train: Callable[..., tuple[GPSState, GPSMetrics]]  # (key, hparams=None)
 
@@ -177,7 +177,8 @@ class GPSSamples:
 class GPSPhases(NamedTuple):
     """One GPS iteration in parts (pure; every function handles all C conditions at once).
 
-    init(key, hparams=None) -> GPSState; outer(state, key) -> GPSSamples (sample the current
+    init(key, hparams=None, controller=None) -> GPSState (``controller``: initial controllers
+    [C, ...], default zero gains); outer(state, key) -> GPSSamples (sample the current
     controller, fit dynamics); fit(X, U) -> GPSSamples (the same from given samples [C, N, ...],
     e.g. drawn from a global policy); expand(cost, samples) -> QuadraticCost [C] about the origin
     (the GPS sample-averaged expansion of ``cost``, a residual function when
@@ -256,11 +257,20 @@ def make_gps_phases(
             kl_step=jnp.asarray(config.kl_step, dtype), init_var=jnp.asarray(config.init_var, dtype)
         )
 
-    def init(key: PRNGKey, hparams: GPSHyperparams | None = None) -> GPSState:
+    def init(
+        key: PRNGKey,
+        hparams: GPSHyperparams | None = None,
+        controller: LinearGaussianController | None = None,
+    ) -> GPSState:
+        """``controller``: initial controllers [C, T, ...] (e.g. from iLQR,
+        :mod:`diffgcl.algorithms.trajopt`); default K = 0, k = 0, Σ = init_var·I."""
         del key  # the initial controller is deterministic
         hp = default_hparams() if hparams is None else hparams
-        ctrl = init_controller(T, dX, dU, hp.init_var, dtype=dtype)
-        ctrl = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), ctrl)
+        if controller is None:
+            ctrl = init_controller(T, dX, dU, hp.init_var, dtype=dtype)
+            ctrl = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), ctrl)
+        else:
+            ctrl = jax.tree.map(lambda a: jnp.asarray(a, dtype), controller)
         zeros = lambda *shape: jnp.zeros((C, *shape), dtype)
         return GPSState(
             controller=ctrl,
