@@ -189,7 +189,9 @@ def expert_demos(task: Task, path: Path, *, seeds, demos_per_condition: int) -> 
     }
 
 
-def ilqr_expert_demos(task: Task, path: Path, *, demos_per_condition: int) -> dict:
+def ilqr_expert_demos(
+    task: Task, path: Path, *, demos_per_condition: int, noise_var: float = 0.01
+) -> dict:
     """The expert path of a user with a cost and no demos: ``api.expert_demos`` (iLQR from each
     start state, demos sampled about each solution) with its defaults, saved as the npz."""
     env = api.load_model(
@@ -201,13 +203,14 @@ def ilqr_expert_demos(task: Task, path: Path, *, demos_per_condition: int) -> di
         success=task.success,
     )
     t0 = time.perf_counter()
-    demos = api.expert_demos(env, per_start=demos_per_condition, path=path)
+    demos = api.expert_demos(env, per_start=demos_per_condition, noise_var=noise_var, path=path)
     X = jnp.asarray(demos.X)
     success = np.asarray(jax.vmap(env.success)(X))
     true = jax.vmap(lambda x, u: trajectory_cost(task.cost, x, u))(X, jnp.asarray(demos.U))
     first = {e["condition"]: e for e in reversed(demos.episodes)}
     return {
         "expert": "ilqr",
+        "noise_var": noise_var,
         "solution_success": [bool(first[c]["solution_success"]) for c in sorted(first)],
         "solution_cost": [float(first[c]["ilqr_cost"]) for c in sorted(first)],
         "ilqr_status": [first[c]["ilqr_status"] for c in sorted(first)],
@@ -254,6 +257,9 @@ def main(argv=None) -> int:
         help="the user's expert: api.expert_demos (iLQR, default) or GPS on the cost",
     )
     parser.add_argument("--expert-only", action="store_true", help="stop after the demos")
+    parser.add_argument(
+        "--demo-noise-var", type=float, default=0.01, help="iLQR expert: demos' action variance"
+    )
     args = parser.parse_args(argv)
     set_cpu_devices()
     if args.x64:
@@ -269,7 +275,10 @@ def main(argv=None) -> int:
         per_condition = 3 if args.fast else 5
         if args.expert == "ilqr":
             expert = ilqr_expert_demos(
-                task, args.out / name / "demos.npz", demos_per_condition=per_condition
+                task,
+                args.out / name / "demos.npz",
+                demos_per_condition=per_condition,
+                noise_var=args.demo_noise_var,
             )
             solved = expert["solution_success"]
         else:
