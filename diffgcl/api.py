@@ -78,6 +78,110 @@ def load_demos(source, env: MJCFEnv, **options) -> DemoSet:
     return demos_from_trajectories(source, env, **options)
 
 
+def expert_demos(
+    env: MJCFEnv,
+    cost: CostFn | None = None,
+    x0=None,
+    *,
+    per_start: int = 5,
+    noise_var: float | None = 0.01,
+    temperature: float | None = None,
+    gps_iterations: int = 0,
+    seed: int = 0,
+    path: str | os.PathLike | None = None,
+    ilqr=None,
+    restarts: bool = False,
+    verbose: bool = True,
+) -> DemoSet:
+    """Demonstrations for a user with a cost and no demos (:mod:`diffgcl.algorithms.trajopt`).
+
+    iLQR on ``cost`` (default: the env's ``cost=``) from each start state ``x0: [C, dX]``
+    (default: the env's conditions; with ``restarts`` the best of iLQR from zero actions and
+    from a small constant action either way on each actuator,
+    :func:`diffgcl.algorithms.trajopt.solve_restarts`), then ``per_start`` noisy rollouts of
+    each solution's closed-loop controller ``u ~ N(K x + k, Σ_t)``, white noise. ``Σ_t`` has the
+    shape of ``(Q_uu,t + μI)⁻¹`` — the demonstrator varies most where the cost-to-go is flattest
+    — and a mean variance of ``noise_var`` in the normalised actions (0.01: a standard deviation
+    of a tenth of each actuator's range), whatever the cost's scale. With ``temperature``
+    instead, ``Σ_t = temperature · (Q_uu,t + μI)⁻¹``: the maximum-entropy demonstrator of the
+    cost linearised about the solution (GCL's model of an expert; at temperature 1 it is as
+    broad as the cost's own scale makes it, which for a cost of a few units over the horizon is
+    far broader than the task allows). With ``gps_iterations`` GPS refines the iLQR controllers
+    first (its samples' noise then comes from GPS). ``path``: also write the npz format of
+    :mod:`diffgcl.data.mujoco_demos` (ctrl clamped to the control ranges, as MuJoCo applies it).
+    ``ilqr``: an :class:`~diffgcl.control.ilqr.ILQRConfig`. Episodes' metadata:
+    ``source="ilqr-expert"``, the condition, and the noise-free solution's ``ilqr_status``,
+    ``ilqr_cost`` and (with the env's success test) ``solution_success``. A start whose solution
+    fails the test is reported.
+
+    Precision: run it with ``jax_enable_x64`` for a model with joint limits or contacts; in
+    float32 the derivatives through MuJoCo's iterative constraint solver are too noisy for the
+    line search (gymnasium's reacher: 2 of 8 starts stuck at the elbow's limit in float32, none
+    in float64). For a model whose vmapped programs hang in LAPACK, load it with
+    ``lapack_free=True``.
+    """
+    from diffgcl.algorithms import trajopt
+    from diffgcl.control.ilqr import STATUS_NAMES, ILQRConfig
+    from diffgcl.data.mujoco_demos import demos_from_arrays, save_npz
+
+    if cost is None:
+        if not env.has_cost:
+            raise ValueError("expert_demos: give a cost (or load_model(..., cost=...))")
+        cost = env.expert_cost
+    if int(per_start) < 1:
+        raise ValueError(f"expert_demos: per_start must be >= 1, got {per_start}")
+    if temperature is None and (noise_var is None or noise_var <= 0):
+        raise ValueError("expert_demos: give a positive noise_var or a temperature")
+    if temperature is not None and temperature <= 0:
+        raise ValueError(f"expert_demos: temperature must be > 0, got {temperature}")
+    init_var = None if temperature is not None else float(noise_var)
+    temp = 1.0 if temperature is None else float(temperature)
+    if x0 is not None:
+        env = env.with_conditions(x0)
+    X0 = env.initial_states()
+    config = ILQRConfig() if ilqr is None else ilqr
+    solve = jax.jit(
+        lambda x: trajopt.ilqr_controllers(
+            env, cost, x, config=config, init_var=init_var, temperature=temp, restarts=restarts
+        )
+    )
+    ctrl, result = solve(X0)
+    if gps_iterations:
+        from diffgcl.algorithms.gps import GPSConfig
+        from diffgcl.control.ilqr import ilqr_controller
+
+        gps_config = GPSConfig(iterations=int(gps_iterations))
+        train = trajopt.make_gps_from(gps_config, env, cost, x0=X0)
+        start = jax.vmap(lambda r: ilqr_controller(r, init_var=gps_config.init_var))(result)
+        ctrl = jax.jit(train)(jax.random.PRNGKey(seed), start)[0].controller
+    key = jax.random.PRNGKey(10_000 + seed)
+    X, U, condition = jax.jit(
+        lambda c, x, k: trajopt.expert_rollouts(env, c, x, k, int(per_start))
+    )(ctrl, X0, key)
+    r = rollout_arrays(env, X, U)
+    applied = np.clip(r.ctrl, env.ctrl_range[:, 0], env.ctrl_range[:, 1])
+    condition = np.asarray(condition)
+    demos = demos_from_arrays(env, r.qpos, r.qvel, applied, condition=condition,
+                              source="ilqr-expert")  # fmt: skip
+    status = [STATUS_NAMES[int(s)] for s in np.asarray(result.status)]
+    solved = np.asarray(jax.vmap(env.success)(result.X)) if env.has_success else None
+    episodes = tuple(
+        dict(e)
+        | {"seed": int(seed), "ilqr_status": status[c], "ilqr_cost": float(result.cost[c])}
+        | ({} if solved is None else {"solution_success": bool(solved[c])})
+        for e, c in zip(demos.episodes, condition, strict=True)
+    )
+    demos = dataclasses.replace(demos, episodes=episodes)
+    if verbose:
+        for c in range(X0.shape[0]):
+            if solved is not None and not solved[c]:
+                print(f"expert_demos: start {c}: the iLQR solution fails the success test "
+                      f"({status[c]}, cost {float(result.cost[c]):.6g})")  # fmt: skip
+    if path is not None:
+        save_npz(path, r.qpos, r.qvel, applied, condition=condition, dt=env.dt)
+    return demos
+
+
 def demo_conditions(demos: DemoSet, atol: float = 1e-6) -> tuple[np.ndarray, DemoSet]:
     """Start states ``x0: [C, dX]`` and the demos labelled with their condition.
 

@@ -4,9 +4,10 @@ For each model — a planar reacher and a cart-pole written from their usual pub
 descriptions (``models/reacher.xml``, ``models/cartpole.xml``) — this script plays two parts:
 
 1. **the user's expert**: a hand-written cost and success test (below, user code: nothing in the
-   library knows these tasks), GPS on that cost from the task's start states, and demos sampled
-   from the best expert seed's controllers, written as an npz of MuJoCo arrays (qpos, qvel,
-   ctrl per episode, the documented format of :mod:`diffgcl.data.mujoco_demos`);
+   library knows these tasks) and demos of it, written as an npz of MuJoCo arrays (qpos, qvel,
+   ctrl per episode, the documented format of :mod:`diffgcl.data.mujoco_demos`): by default
+   ``api.expert_demos`` (iLQR from the task's start states, demos sampled about each solution);
+   ``--expert gps``: GPS on that cost and demos from the best expert seed's controllers;
 2. **the user of diffgcl**: the ≤ 10-line path of :mod:`diffgcl.api` — load the model, load the
    demos, learn the cost with rGCL's ``default`` preset and a global policy (MDGPS), roll the
    policy out, save the run — with the success test and the true cost handed in for the report
@@ -20,6 +21,8 @@ and times (compile and run, on a shared 2-core machine: indicative only).
 
     python experiments/any_mjcf.py --json runs/any_mjcf.json            # full: 4 seeds
     python experiments/any_mjcf.py --fast --json runs/any_mjcf_fast.json  # 1 seed, short runs
+    python experiments/any_mjcf.py --fast --expert-only --json runs/any_mjcf_expert.json  # demos
+    python experiments/any_mjcf.py --expert gps ...                     # the GPS expert
 """
 
 from __future__ import annotations
@@ -37,6 +40,7 @@ import numpy as np
 from diffgcl import api
 from diffgcl.algorithms.gps import GPSConfig
 from diffgcl.algorithms.gps_runner import run_seeds
+from diffgcl.costs.expansion import trajectory_cost
 from diffgcl.data.mujoco_demos import save_npz
 from diffgcl.runtime import prepare_process, set_cpu_devices
 from diffgcl.sim.rollout import rollout_controller, smooth_noise
@@ -185,6 +189,40 @@ def expert_demos(task: Task, path: Path, *, seeds, demos_per_condition: int) -> 
     }
 
 
+def ilqr_expert_demos(
+    task: Task, path: Path, *, demos_per_condition: int, noise_var: float = 0.01
+) -> dict:
+    """The expert path of a user with a cost and no demos: ``api.expert_demos`` (iLQR from each
+    start state, demos sampled about each solution) with its defaults, saved as the npz."""
+    env = api.load_model(
+        task.mjcf,
+        x0=np.asarray(task.starts),
+        horizon=task.horizon,
+        dt=task.dt,
+        cost=task.cost,
+        success=task.success,
+    )
+    t0 = time.perf_counter()
+    demos = api.expert_demos(env, per_start=demos_per_condition, noise_var=noise_var, path=path)
+    X = jnp.asarray(demos.X)
+    success = np.asarray(jax.vmap(env.success)(X))
+    true = jax.vmap(lambda x, u: trajectory_cost(task.cost, x, u))(X, jnp.asarray(demos.U))
+    first = {e["condition"]: e for e in reversed(demos.episodes)}
+    return {
+        "expert": "ilqr",
+        "noise_var": noise_var,
+        "solution_success": [bool(first[c]["solution_success"]) for c in sorted(first)],
+        "solution_cost": [float(first[c]["ilqr_cost"]) for c in sorted(first)],
+        "ilqr_status": [first[c]["ilqr_status"] for c in sorted(first)],
+        "demos": int(demos.num_episodes),
+        "demos_per_condition": demos_per_condition,
+        "demo_success_rate": float(success.mean()),
+        "demo_true_cost": float(np.mean(np.asarray(true))),
+        "demo_file": str(path),
+        "seconds": time.perf_counter() - t0,
+    }
+
+
 # ---- part 2: the user of diffgcl (the ten lines of the API) -------------------------------------
 
 
@@ -212,6 +250,16 @@ def main(argv=None) -> int:
     parser.add_argument("--out", type=Path, default=Path("runs/any_mjcf"))
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--x64", action="store_true")
+    parser.add_argument(
+        "--expert",
+        choices=("ilqr", "gps"),
+        default="ilqr",
+        help="the user's expert: api.expert_demos (iLQR, default) or GPS on the cost",
+    )
+    parser.add_argument("--expert-only", action="store_true", help="stop after the demos")
+    parser.add_argument(
+        "--demo-noise-var", type=float, default=0.01, help="iLQR expert: demos' action variance"
+    )
     args = parser.parse_args(argv)
     set_cpu_devices()
     if args.x64:
@@ -223,17 +271,31 @@ def main(argv=None) -> int:
     results = {}
     for name in args.models.split(","):
         task = tasks()[name]
-        print(f"== {name}: expert GPS on the hand-written cost ({task.mjcf})")
-        expert = expert_demos(
-            task,
-            args.out / name / "demos.npz",
-            seeds=expert_seeds,
-            demos_per_condition=3 if args.fast else 5,
-        )
+        print(f"== {name}: expert {args.expert} on the hand-written cost ({task.mjcf})")
+        per_condition = 3 if args.fast else 5
+        if args.expert == "ilqr":
+            expert = ilqr_expert_demos(
+                task,
+                args.out / name / "demos.npz",
+                demos_per_condition=per_condition,
+                noise_var=args.demo_noise_var,
+            )
+            solved = expert["solution_success"]
+        else:
+            expert = expert_demos(
+                task,
+                args.out / name / "demos.npz",
+                seeds=expert_seeds,
+                demos_per_condition=per_condition,
+            )
+            solved = expert["gps_success"]
         print(
-            f"   expert success {expert['gps_success']}, demos {expert['demos']} "
+            f"   expert success {solved}, demos {expert['demos']} "
             f"(success {expert['demo_success_rate']:.2f}), {expert['seconds']:.0f} s"
         )
+        if args.expert_only:
+            results[name] = {"expert": expert}
+            continue
         print(f"== {name}: rGCL (default preset) from the demos, seeds 0..{n_seeds - 1}")
         t0 = time.perf_counter()
         report = learn_from_demos(
@@ -255,7 +317,7 @@ def main(argv=None) -> int:
         results[name] = {"expert": expert, "rgcl": report, "seconds": seconds}
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        summary = {"fast": args.fast, "x64": args.x64, "models": results}
+        summary = {"fast": args.fast, "x64": args.x64, "expert": args.expert, "models": results}
         args.json.write_text(json.dumps(summary, indent=1))
         print(f"wrote {args.json}")
     return 0

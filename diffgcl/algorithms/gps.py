@@ -176,7 +176,7 @@ class GPS(NamedTuple):
     train(key, hparams=None) -> (state, metrics [iterations]); phases: the
     :class:`GPSPhases`."""
 
-    init: Callable[..., GPSState]
+    init: Callable[..., GPSState]  # (key, hparams=None, controller=None)
     iteration: Callable[[GPSState, PRNGKey], tuple[GPSState, GPSMetrics]]
     train: Callable[..., tuple[GPSState, GPSMetrics]]
     draw: Callable[[GPSState, PRNGKey], SampleRequest]
@@ -227,7 +227,8 @@ class SimulatedSamples:
 class GPSPhases(NamedTuple):
     """One GPS iteration in parts (pure; every function handles all C conditions at once).
 
-    init(key, hparams=None) -> GPSState; draw(state, key) -> SampleRequest (the current
+    init(key, hparams=None, controller=None) -> GPSState (``controller``: initial controllers
+    [C, ...], default zero gains); draw(state, key) -> SampleRequest (the current
     controllers, N noisy samples and the noise-free rollout each); simulate(sim, request) ->
     SimulatedSamples (the only part that runs the env: rollouts and, with autodiff dynamics, the
     Jacobians at the samples' mean); fit(simulated) -> GPSSamples (dynamics, start Gaussian);
@@ -307,11 +308,20 @@ def make_gps_phases(
             kl_step=jnp.asarray(config.kl_step, dtype), init_var=jnp.asarray(config.init_var, dtype)
         )
 
-    def init(key: PRNGKey, hparams: GPSHyperparams | None = None) -> GPSState:
+    def init(
+        key: PRNGKey,
+        hparams: GPSHyperparams | None = None,
+        controller: LinearGaussianController | None = None,
+    ) -> GPSState:
+        """``controller``: initial controllers [C, T, ...] (e.g. from iLQR,
+        :mod:`diffgcl.algorithms.trajopt`); default K = 0, k = 0, Σ = init_var·I."""
         del key  # the initial controller is deterministic
         hp = default_hparams() if hparams is None else hparams
-        ctrl = init_controller(T, dX, dU, hp.init_var, dtype=dtype)
-        ctrl = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), ctrl)
+        if controller is None:
+            ctrl = init_controller(T, dX, dU, hp.init_var, dtype=dtype)
+            ctrl = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), ctrl)
+        else:
+            ctrl = jax.tree.map(lambda a: jnp.asarray(a, dtype), controller)
         zeros = lambda *shape: jnp.zeros((C, *shape), dtype)
         x0_state = jnp.asarray(x0_host, dtype)
         return GPSState(

@@ -1,5 +1,6 @@
 """``diffgcl gps`` and ``diffgcl demos``: GPS on the arm with the expert cost over seeds, and
-expert demonstrations from it. Argument parsing and printing; the runs, summaries and plots come
+expert demonstrations from it (``demos --mjcf``: your own model's, by iLQR on a cost,
+:mod:`diffgcl.cli.expert`). Argument parsing and printing; the runs, summaries and plots come
 from :mod:`diffgcl.algorithms.gps_runner` and :mod:`diffgcl.viz.plots`.
 ``experiments/arm_gps.py`` runs :func:`run_arm_gps` with a JSON summary.
 """
@@ -177,8 +178,12 @@ def register(subparsers) -> None:
     add_gps_arguments(gps)
     gps.set_defaults(func=_gps_command)
 
-    demos = subparsers.add_parser("demos", help="train a GPS expert on the arm, write demos")
-    demos.add_argument("out", type=Path, help="dataset folder (demos.npz + meta.json)")
+    demos = subparsers.add_parser(
+        "demos", help="expert demos: GPS on the arm, or iLQR on your model's cost (--mjcf)"
+    )
+    demos.add_argument(
+        "out", type=Path, help="dataset folder (demos.npz + meta.json); with --mjcf an .npz file"
+    )
     demos.add_argument("--seed", type=int, default=0)
     demos.add_argument("--num-demos", type=int, default=10)
     demos.add_argument(
@@ -192,6 +197,9 @@ def register(subparsers) -> None:
     demos.add_argument("--torque-limit", type=float, default=None)
     add_env_options(demos, ("arm",))
     demos.add_argument("--x64", action="store_true")
+    from diffgcl.cli import expert
+
+    expert.add_arguments(demos)
     demos.set_defaults(func=_demos_command)
 
 
@@ -203,11 +211,15 @@ def _gps_command(args) -> int:
 def _demos_command(args) -> int:
     """Train GPS on seeds seed, ..., seed+7; write the demos of the succeeding seed with the
     lowest final cost (as the built-in demos are chosen)."""
-    if args.x64:
+    if args.x64 or args.mjcf is not None:  # iLQR on an MJCF model runs in float64 (cli.expert)
         jax.config.update("jax_enable_x64", True)
     from diffgcl.runtime import prepare_process
 
     prepare_process()
+    if args.mjcf is not None:
+        from diffgcl.cli.expert import mjcf_demos_command
+
+        return mjcf_demos_command(args)
     _check_demo_folder(args.out)
     env = make_arm(args)
     config = config_from_args(args)

@@ -327,6 +327,7 @@ def make_mjcf_env(
     cost: CostFn | None = None,
     success: Callable[[Array], Array] | None = None,
     name: str | None = None,
+    lapack_free: bool = False,
 ) -> MJCFEnv:
     """The generic env of the MJCF file ``mjcf`` (a path, or a file name under ``models/``; the
     default is the free-flying space robot, a model with free, ball and hinge joints).
@@ -336,9 +337,19 @@ def make_mjcf_env(
     coordinates (NumPy ``seed``); horizon: T; dt: control period (a whole multiple of the model's
     timestep; default the timestep); obs, action_scale, cost, success: see the module docstring;
     name: default the file's stem. The float precision follows ``jax_enable_x64``.
+
+    lapack_free: simulate with a sparse mass-matrix factorisation and the CG constraint solver
+    (``<option jacobian="sparse" solver="CG">`` set on the loaded model, the file untouched), so
+    that ``mjx.step`` makes no LAPACK call: jaxlib 0.10.2's batched CPU LAPACK kernels (MJX's
+    dense Cholesky of the mass matrix and the Newton solver's Hessian) can deadlock a wide
+    vmapped program on a 2-thread pool (measured: iLQR over 8 start states of gymnasium's reacher
+    hung in ``lapack_strsm_ffi``). Same dynamics up to the constraint solver's tolerance.
     """
     path = resolve_mjcf(mjcf)
     model = load_mjcf(path)
+    if lapack_free:
+        model.opt.jacobian = mujoco.mjtJacobian.mjJAC_SPARSE
+        model.opt.solver = mujoco.mjtSolver.mjSOL_CG
     if model.nu < 1:
         raise MJCFError(f"{path}: the model has no actuators (the action is MuJoCo's ctrl)")
     mx = put_model_checked(model, path)

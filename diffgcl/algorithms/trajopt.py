@@ -1,0 +1,199 @@
+"""Trajectory optimisation where the cost is known: iLQR on an env, GPS started from iLQR.
+
+GPS (:mod:`diffgcl.algorithms.gps`) from a zero controller with ``Σ = init_var·I`` has to find
+the task with KL-bounded steps from noisy samples; iLQR (:mod:`diffgcl.control.ilqr`) solves the
+same problem deterministically with Newton steps through the simulator's autodiff Jacobians.
+Where a cost is known — the expert that makes demonstrations, GPS's initial controllers, the
+re-optimisation of a frozen learned cost — this module runs iLQR first:
+
+* :func:`solve` — iLQR from every start state ``x0: [C, dX]`` of an env (vmapped: one compiled
+  program for all start states; start states and the initial actions are traced arguments);
+* :func:`ilqr_controllers` — the solutions as linear-Gaussian controllers [C, T, ...]
+  (:func:`diffgcl.control.ilqr.ilqr_controller`: covariance shaped like ``(Q_uu + μI)⁻¹``);
+* :func:`make_gps_from` — GPS whose ``train(key, controller, hparams=None)`` starts from given
+  controllers (traced, so a zero controller and an iLQR one share one program);
+  :func:`make_gps_from_ilqr` composes the two: iLQR, then GPS's KL-constrained steps refining
+  the iLQR controllers, with ``init_var`` the mean variance of their (Q_uu-shaped) noise.
+
+GPS stays what the learned-cost paths (rGCL's C-step, MDGPS) use: they need the KL bound and the
+samples; this module is for a cost that is known and fixed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams, GPSMetrics, GPSState, make_gps
+from diffgcl.control.ilqr import ILQRConfig, ILQRResult, ilqr, ilqr_controller
+from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey
+
+
+def solve(
+    env: Env,
+    cost: CostFn,
+    x0: Array,
+    U_init: Array | None = None,
+    config: ILQRConfig | None = None,
+) -> ILQRResult:
+    """iLQR on ``env.step`` with ``cost`` from each start state ``x0: [C, dX]`` (pure; jit it).
+
+    U_init: [T, dU] or [C, T, dU] initial actions (default zeros, ``T = env.horizon``).
+    Returns an :class:`~diffgcl.control.ilqr.ILQRResult` with leading axis C.
+    """
+    x0 = jnp.atleast_2d(x0)
+    T, dU = env.horizon, env.dU
+    if x0.shape[-1] != env.dX:
+        raise ValueError(f"trajopt.solve: x0 must be [C, {env.dX}], got {tuple(x0.shape)}")
+    U = jnp.zeros((T, dU), x0.dtype) if U_init is None else jnp.asarray(U_init, x0.dtype)
+    if U.shape[-2:] != (T, dU):
+        raise ValueError(f"trajopt.solve: U_init must be [T={T}, {dU}] or [C, T, {dU}], got "
+                         f"{tuple(U.shape)}")  # fmt: skip
+    U = jnp.broadcast_to(U, (x0.shape[0], T, dU))
+    config = ILQRConfig() if config is None else config
+    return jax.vmap(lambda x, u: ilqr(env.step, cost, x, u, config))(x0, U)
+
+
+def restart_actions(T: int, dU: int, scale: float, dtype=None) -> Array:
+    """Initial action sequences of :func:`solve_restarts`: zeros, and ``±scale`` held constant on
+    one actuator at a time -> [1 + 2·dU, T, dU]."""
+    dtype = dtype or jnp.zeros(()).dtype
+    eye = jnp.eye(dU, dtype=dtype)
+    consts = jnp.concatenate([jnp.zeros((1, dU), dtype), scale * eye, -scale * eye])
+    return jnp.broadcast_to(consts[:, None, :], (1 + 2 * dU, T, dU))
+
+
+def solve_restarts(
+    env: Env,
+    cost: CostFn,
+    x0: Array,
+    config: ILQRConfig | None = None,
+    *,
+    scale: float = 0.1,
+) -> tuple[ILQRResult, Array, Array]:
+    """iLQR from each start state and each of :func:`restart_actions`' initial action sequences
+    (one program: vmapped over both), keeping per start the lowest final cost.
+
+    Why: a cost that is not convex in the actions has stationary points that zero actions sit on
+    by symmetry — gymnasium's reacher with the target behind the arm: the fingertip distance's
+    gradient along the shoulder vanishes at zero torque, and iLQR folds the elbow instead and
+    stops short. A small constant torque either way breaks the symmetry. Returns (the kept
+    ILQRResult [C], the index of its initial sequence [C], every run's ILQRResult [R, C]; run 0
+    is iLQR from zero actions).
+    """
+    x0 = jnp.atleast_2d(x0)
+    U = restart_actions(env.horizon, env.dU, scale, x0.dtype)
+    results = jax.vmap(lambda u: solve(env, cost, x0, u, config))(U)  # fields [R, C, ...]
+    costs = jnp.where(jnp.isfinite(results.cost), results.cost, jnp.inf)
+    best = jnp.argmin(costs, axis=0)  # [C]
+    pick = jax.vmap(lambda c, i: jax.tree.map(lambda a: a[i, c], results), (0, 0))
+    return pick(jnp.arange(x0.shape[0]), best), best, results
+
+
+def ilqr_controllers(
+    env: Env,
+    cost: CostFn,
+    x0: Array,
+    *,
+    config: ILQRConfig | None = None,
+    init_var: float | Array | None = None,
+    temperature: float | Array = 1.0,
+    U_init: Array | None = None,
+    restarts: bool = False,
+) -> tuple[LinearGaussianController, ILQRResult]:
+    """iLQR from every start state (``restarts``: the best of :func:`solve_restarts`) and the
+    solutions as controllers (fields [C, T, ...]); see
+    :func:`diffgcl.control.ilqr.ilqr_controller` for ``init_var`` and ``temperature``."""
+    if restarts:
+        result = solve_restarts(env, cost, x0, config)[0]
+    else:
+        result = solve(env, cost, x0, U_init, config)
+    ctrl = jax.vmap(lambda r: ilqr_controller(r, init_var=init_var, temperature=temperature))(
+        result
+    )
+    return ctrl, result
+
+
+def make_gps_from(
+    config: GPSConfig,
+    env: Env,
+    cost: CostFn,
+    *,
+    true_cost: CostFn | None = None,
+    x0: Array | None = None,
+) -> Callable[..., tuple[GPSState, GPSMetrics]]:
+    """``train(key, controller, hparams=None) -> (state, metrics [iterations, C])``: GPS
+    (:func:`~diffgcl.algorithms.gps.make_gps`, same arguments) from the initial controllers
+    ``controller`` (fields [C, T, ...]) instead of the zero controller. With the zero controller
+    of ``init_var`` it is ``make_gps(...).train`` (the same keys)."""
+    gps = make_gps(config, env, cost, true_cost=true_cost, x0=x0)
+
+    def train(key: PRNGKey, controller: LinearGaussianController, hparams=None):
+        key_init, key_iter = jax.random.split(key)
+        state = gps.init(key_init, hparams, controller=controller)
+        return lax.scan(gps.iteration, state, jax.random.split(key_iter, config.iterations))
+
+    return train
+
+
+def make_gps_from_ilqr(
+    config: GPSConfig,
+    env: Env,
+    cost: CostFn,
+    *,
+    ilqr_config: ILQRConfig | None = None,
+    true_cost: CostFn | None = None,
+    x0: Array | None = None,
+) -> Callable[..., tuple[GPSState, GPSMetrics, ILQRResult]]:
+    """``train(key, hparams=None) -> (state, metrics, ilqr_result)``: iLQR on ``cost`` from each
+    condition, then GPS's KL-constrained iterations starting from the iLQR controllers, whose
+    noise has the shape of ``(Q_uu + μI)⁻¹`` and mean variance ``init_var`` (from ``hparams``
+    or ``config``). ``cost`` is a residual with ``config.gauss_newton`` (for both)."""
+    import dataclasses
+
+    X0 = jnp.asarray(env.initial_states() if x0 is None else x0)
+    train_from = make_gps_from(config, env, cost, true_cost=true_cost, x0=X0)
+    ilqr_config = dataclasses.replace(
+        ILQRConfig() if ilqr_config is None else ilqr_config, gauss_newton=config.gauss_newton
+    )
+
+    def train(key: PRNGKey, hparams: GPSHyperparams | None = None):
+        init_var = config.init_var if hparams is None else hparams.init_var
+        ctrl, result = ilqr_controllers(env, cost, X0, config=ilqr_config, init_var=init_var)
+        state, metrics = train_from(key, ctrl, hparams)
+        return state, metrics, result
+
+    return train
+
+
+def expert_rollouts(
+    env: Env,
+    controllers: LinearGaussianController,
+    x0: Array,
+    key: PRNGKey,
+    per_start: int,
+    *,
+    smooth_sigma: float | None = None,
+):
+    """``per_start`` noisy rollouts of each start's controller (fields [C, T, ...]) from its
+    start ``x0: [C, dX]``, episode ``i`` from start ``i mod C``: (X [C·per_start, T+1, dX],
+    U [C·per_start, T, dU], condition [C·per_start]). White noise by default (the MaxEnt
+    demonstrator of :func:`~diffgcl.control.ilqr.ilqr_controller`); ``smooth_sigma`` smooths it
+    in time as GPS's samples are."""
+    from diffgcl.sim.rollout import rollout_controller, smooth_noise
+
+    C = x0.shape[0]
+    n = C * per_start
+    condition = jnp.arange(n) % C
+
+    def one(c, k):
+        ctrl = jax.tree.map(lambda a: a[c], controllers)
+        noise = smooth_noise(k, env.horizon, env.dU, smooth_sigma)
+        traj = rollout_controller(env, ctrl, x0[c], noise)
+        return traj.X, traj.U
+
+    X, U = jax.vmap(one)(condition, jax.random.split(key, n))
+    return X, U, condition

@@ -1,0 +1,144 @@
+"""iLQR on an MJCF env, GPS started from given controllers, and the expert-demo path (api and
+``diffgcl demos --mjcf``), on a one-joint model that compiles in seconds."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_lqr import riccati_numpy
+
+from diffgcl import api
+from diffgcl.algorithms import trajopt
+from diffgcl.algorithms.gps import GPSConfig, make_gps
+from diffgcl.control.ilqr import CONVERGED, ILQRConfig
+from diffgcl.control.init import init_controller
+from diffgcl.dynamics.autodiff import linearize
+
+SLIDER = """<mujoco model="slider">
+  <option timestep="0.05" integrator="Euler"/>
+  <worldbody>
+    <body name="cart">
+      <joint name="x" type="slide" axis="1 0 0" damping="0.5"/>
+      <geom type="sphere" size="0.1" mass="1"/>
+    </body>
+  </worldbody>
+  <actuator><motor joint="x" gear="2" ctrlrange="-5 5" ctrllimited="true"/></actuator>
+</mujoco>
+"""
+
+T = 12
+
+
+def cost(x, u, t):
+    w = jnp.where(t == T, 10.0, 1.0)
+    return 0.5 * w * (x[0] ** 2 + 0.1 * x[1] ** 2) + 0.5 * 0.05 * u @ u
+
+
+@pytest.fixture(scope="module")
+def env(tmp_path_factory):
+    path = tmp_path_factory.mktemp("slider") / "slider.xml"
+    path.write_text(SLIDER)
+    x0 = np.array([[0.3, 0.0], [-0.2, 0.1]])
+    return api.load_model(path, x0=x0, horizon=T, cost=cost,
+                          success=lambda X: jnp.all(jnp.abs(X[-3:, 0]) < 0.1))  # fmt: skip
+
+
+def test_ilqr_through_mjx_equals_riccati(env):
+    """The slider under Euler is linear in (x, u) (actions well inside the control range): iLQR
+    through mjx.step gives the Riccati solution of its autodiff linearisation."""
+    result = jax.jit(lambda x: trajopt.solve(env, cost, x))(env.initial_states())
+    assert np.all(np.asarray(result.status) == CONVERGED)
+    x0 = np.asarray(env.initial_states()[0])
+    A, B = (np.asarray(a) for a in linearize(env.step, jnp.asarray(x0), jnp.zeros(1)))
+    tile = lambda a: np.broadcast_to(a, (T, *a.shape)).copy()
+    dX, dU = 2, 1
+    Qxx = np.diag([1.0, 0.1])
+    K, k, _ = riccati_numpy(
+        tile(A), tile(B), np.zeros((T, dX)), tile(Qxx), tile(0.05 * np.eye(dU)),
+        np.zeros((T, dU, dX)), np.zeros((T, dX)), np.zeros((T, dU)), 10 * Qxx, np.zeros(dX),
+    )  # fmt: skip
+    x, U = x0, []
+    for t in range(T):
+        U.append(K[t] @ x + k[t])
+        x = A @ x + B @ U[-1]
+    assert np.abs(np.asarray(U)).max() < 5.0  # the clamp is inactive: the dynamics are linear
+    np.testing.assert_allclose(result.U[0], np.asarray(U), rtol=0, atol=1e-7)
+    np.testing.assert_allclose(result.K[0], K, rtol=0, atol=1e-7)
+
+
+def test_restarts_keep_the_lowest_cost(env):
+    """solve_restarts: zeros and ±scale per actuator; per start the kept solution is the
+    lowest-cost one, and it is that start's run from that initial sequence."""
+    U = trajopt.restart_actions(T, 1, 0.1)
+    assert U.shape == (3, T, 1)
+    np.testing.assert_array_equal(U[:, 0, 0], [0.0, 0.1, -0.1])
+    X0 = env.initial_states()
+    kept, best, runs = jax.jit(lambda x: trajopt.solve_restarts(env, cost, x))(X0)
+    costs = runs.cost
+    np.testing.assert_array_equal(np.asarray(best), np.argmin(np.asarray(costs), axis=0))
+    np.testing.assert_allclose(kept.cost, np.min(np.asarray(costs), axis=0))
+    one = jax.jit(lambda x, u: trajopt.solve(env, cost, x, u))(X0, U[int(best[1])])
+    np.testing.assert_allclose(kept.U[1], one.U[1], rtol=0, atol=1e-12)
+
+
+def test_gps_from_controllers(env):
+    """make_gps_from with the zero controller is make_gps's train (the same keys and numbers);
+    started from the iLQR controllers GPS keeps iLQR's success from its first iteration on and
+    samples at a lower cost than from zero."""
+    config = GPSConfig(iterations=3, num_samples=3, init_var=0.01)
+    train = trajopt.make_gps_from(config, env, cost)
+    C = env.initial_states().shape[0]
+    zero = init_controller(T, env.dX, env.dU, config.init_var)
+    zero = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), zero)
+    key = jax.random.PRNGKey(3)
+    run = jax.jit(train)
+    state, metrics = run(key, zero)
+    ref_state, ref_metrics = jax.jit(make_gps(config, env, cost).train)(key)
+    np.testing.assert_array_equal(state.controller.K, ref_state.controller.K)
+    np.testing.assert_array_equal(metrics.cost, ref_metrics.cost)
+    ctrl, result = jax.jit(lambda x: trajopt.ilqr_controllers(env, cost, x, init_var=0.01))(
+        env.initial_states()
+    )
+    _, metrics = run(key, ctrl)
+    solved = jax.vmap(env.success)(result.X)
+    assert bool(jnp.any(solved))
+    assert bool(jnp.all(metrics.success == solved[None]))  # GPS keeps what iLQR reached
+    assert float(metrics.cost[0].mean()) < float(ref_metrics.cost[0].mean())
+
+
+def test_expert_demos_api_and_cli(env, tmp_path, capsys):
+    from diffgcl.cli import main
+
+    path = tmp_path / "demos.npz"
+    demos = api.expert_demos(env, per_start=3, path=path, ilqr=ILQRConfig(tol=1e-9))
+    assert demos.X.shape == (6, T + 1, 2) and demos.U.shape == (6, T, 1)
+    conditions = [e["condition"] for e in demos.episodes]
+    assert conditions == [0, 1, 0, 1, 0, 1]
+    assert all(e["source"] == "ilqr-expert" and e["solution_success"] for e in demos.episodes)
+    np.testing.assert_allclose(demos.X[:, 0], np.asarray(env.initial_states())[conditions])
+    loaded = api.load_demos(path, env)
+    np.testing.assert_allclose(loaded.U, demos.U, atol=1e-6)
+    # The demos scatter about the solution with the MaxEnt spread: not all identical.
+    assert np.std(demos.U[[0, 2, 4], 0, 0]) > 0
+
+    xml = tmp_path / "slider.xml"
+    xml.write_text(SLIDER)
+    out = tmp_path / "cli.npz"
+    argv = ["demos", str(out), "--mjcf", str(xml), "--cost", "quadratic:1,0.1;u=0.05",
+            "--x0", "0.3,0;-0.2,0.1", "--horizon", str(T), "--per-start", "2"]  # fmt: skip
+    assert main(argv) == 0
+    assert "4 demos (2 per start)" in capsys.readouterr().out
+    assert np.load(out)["qpos"].shape == (4, T + 1, 1)
+    bad = {
+        "quadratic:1,0.1,3": "3 state weights for a state of 2",
+        "quadratic:1;goal=1": "goal has 1 numbers, the state 2",
+        "no_such_module_xyz:cost": "cannot import no_such_module_xyz",
+        "quadratic:1;speed=2": "unknown option",
+    }
+    for spec, message in bad.items():
+        with pytest.raises(SystemExit, match=message):
+            main(["demos", str(out), "--mjcf", str(xml), "--cost", spec, "--horizon", str(T)])
+    with pytest.raises(SystemExit, match="--x0: state 0 has 3 numbers"):
+        main(["demos", str(out), "--mjcf", str(xml), "--cost", "quadratic:1", "--x0", "1,2,3"])
+    with pytest.raises(SystemExit, match="must be an .npz file"):
+        main(["demos", str(tmp_path / "d"), "--mjcf", str(xml), "--cost", "quadratic:1"])
