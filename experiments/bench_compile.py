@@ -180,13 +180,13 @@ def _usv_fast() -> dict:
 
 def worker(entry: str, jax_cache: str, demos_dir: Path) -> dict:
     t0 = time.perf_counter()
-    import jax
 
     from diffgcl.runtime import prepare_process
 
-    prepare_process()
-    # Every program this process compiles goes into (and is looked up in) a cache of its own.
-    jax.config.update("jax_compilation_cache_dir", jax_cache)
+    # ``$DIFFGCL_CACHE`` is this worker's own (fresh_cache_root): the persistent compilation
+    # cache starts empty, in this process and in any it starts.
+    directory = prepare_process()
+    assert str(directory) == jax_cache, (directory, jax_cache)
     record = {"trace_s": 0.0, "lower_s": 0.0, "compile_s": 0.0, "programs": 0, "big_programs": []}
     _instrument(record)
     if entry in ("arm_v2", "arm_v1"):
@@ -247,11 +247,32 @@ def _env(code: Path) -> dict:
     return env
 
 
+def cache_root() -> Path:
+    return Path(os.environ.get("DIFFGCL_CACHE", Path.home() / ".cache" / "diffgcl"))
+
+
+def fresh_cache_root(into: Path) -> Path:
+    """A ``$DIFFGCL_CACHE`` for one worker: links to everything in the usual one (bags, demos)
+    but its ``jax`` folder, the persistent compilation cache, which starts empty. Every process
+    the worker starts (the USV script's radar variant) inherits it."""
+    root = into / "cache"
+    root.mkdir()
+    source = cache_root()
+    if source.is_dir():
+        for item in source.iterdir():
+            if item.name != "jax":
+                (root / item.name).symlink_to(item.resolve())
+    return root
+
+
 def run_worker(code: Path, entry: str, demos_dir: Path) -> dict:
-    with tempfile.TemporaryDirectory(prefix="diffgcl-bench-jax-cache-") as cache:
+    with tempfile.TemporaryDirectory(prefix="diffgcl-bench-worker-") as tmp:
+        env = _env(code)
+        env["DIFFGCL_CACHE"] = str(fresh_cache_root(Path(tmp)))
+        cache = str(Path(env["DIFFGCL_CACHE"]) / "jax")
         cmd = [sys.executable, str(Path(__file__).resolve()), "--worker", entry]
         cmd += ["--jax-cache", cache, "--demos-dir", str(demos_dir)]
-        out = subprocess.run(cmd, cwd=code, env=_env(code), capture_output=True, text=True)
+        out = subprocess.run(cmd, cwd=code, env=env, capture_output=True, text=True)
     if out.returncode != 0:
         tail = "\n".join(out.stderr.strip().splitlines()[-15:])
         raise RuntimeError(f"{entry} ({code}) failed:\n{tail}")

@@ -34,7 +34,8 @@ part (steps 3–5), whose cost expansion and step adaptation take the cost as an
 Metrics describe the controller that drew the iteration's samples: its samples' mean true cost,
 the fraction of them that succeed, and whether its noise-free rollout succeeds (``success``) —
 the controller *before* the iteration's C-step, simulated with its samples. The controller a run
-ends with is judged by its own rollout afterwards (:func:`final_success`).
+ends with is judged by its own rollout afterwards (``final_success`` of
+:func:`diffgcl.algorithms.gps_runner.run_seeds`).
 """
 
 from __future__ import annotations

@@ -223,7 +223,7 @@ def make_policy_phases(
 
     def observe(sim: Simulator, X: Array, keys: Array | None) -> Array:
         """What the policy sees at states X [..., dX] (``keys`` [..., 2] from
-        :func:`observation_keys`; None: exact sensors)."""
+        ``observation_keys``; None: exact sensors)."""
         return sim.observations(X) if keys is None else sim.observations(X, keys)
 
     def observe_at(sim: Simulator, X: Array) -> tuple[Array, Array]:
