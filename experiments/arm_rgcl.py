@@ -198,8 +198,10 @@ def time_single_runs(rgcl, demos, keys, repeats: int = 2) -> dict:
     devices = jax.devices()
     demos_on = [jax.device_put(demos, d) for d in devices]
     keys_on = [jax.device_put(keys, d) for d in devices]
+    # Compiled for device 0's arrays, the program the runs below call there (an executable is
+    # bound to its device: every other device compiles its own, in the warm-up).
     t0 = time.perf_counter()
-    single.lower(keys[0], demos).compile()
+    single.lower(keys_on[0][0], demos_on[0]).compile()
     compile_seconds = time.perf_counter() - t0
     for d in range(len(devices)):  # warm up (and load) the program on every device
         jax.block_until_ready(single(keys_on[d][0], demos_on[d]))
