@@ -305,7 +305,13 @@ def run_diffgcl(task: PeerTask, demo_file: Path, train, held_out, args) -> dict:
     )
     demos = api.load_demos(demo_file, env)
     run = api.learn(
-        env, demos, policy=True, seeds=(0,), iterations=args.diffgcl_iterations, progress=False
+        env,
+        demos,
+        policy=True,
+        seeds=(0,),
+        iterations=args.diffgcl_iterations,
+        overrides=tuple(args.diffgcl_set),
+        progress=False,
     )
     jax.block_until_ready(run.cost_params)
     wall = time.perf_counter() - t0
@@ -506,7 +512,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--fast", action="store_true", help="small budgets (docs/peers.md)")
     parser.add_argument("--tasks", default="pendulum,reacher", help=f"of {','.join(TASKS)}")
-    parser.add_argument("--methods", default="diffgcl,airl,gail,bc,ppo", help="comma-separated")
+    parser.add_argument(
+        "--methods", default="diffgcl,airl,gail,bc,ppo", help="comma-separated; or ppo_learned"
+    )
     parser.add_argument("--train-starts", type=int, default=None, help="default 8; fast 4")
     parser.add_argument("--held-out-starts", type=int, default=None, help="default 16; fast 4")
     parser.add_argument("--per-start", type=int, default=5, help="demos per training start")
@@ -514,6 +522,9 @@ def main(argv=None) -> int:
     parser.add_argument("--rl-batch", type=int, default=None, help="PPO rollout per update")
     parser.add_argument("--bc-epochs", type=int, default=100)
     parser.add_argument("--diffgcl-iterations", type=int, default=None, help="rGCL iterations")
+    parser.add_argument(
+        "--diffgcl-set", action="append", default=[], help="config edit, e.g. gps.init_var=0.01"
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/peers"))
     parser.add_argument("--json", type=Path, default=None)
@@ -579,10 +590,10 @@ def main(argv=None) -> int:
         for kind in ("airl", "gail"):
             if kind in methods:
                 done(kind, run_adversarial(kind, task, trajectories, train, held_out, args))
-        if "ppo" in methods:
+        if "ppo" in methods:  # both; "ppo_learned": the learned cost's alone
             done("ppo_true", run_ppo(task, train, held_out, args))
-            if reward is not None:
-                done("ppo_on_learned_cost", run_ppo(task, train, held_out, args, reward))
+        if reward is not None and ("ppo" in methods or "ppo_learned" in methods):
+            done("ppo_on_learned_cost", run_ppo(task, train, held_out, args, reward))
     print_table(results)
     print(f"total {time.perf_counter() - t_start:.0f} s")
     if args.json:
