@@ -322,6 +322,8 @@ def run_diffgcl(task: PeerTask, demo_file: Path, train, held_out, args) -> dict:
     mean = jax.jit(lambda x: policy.mean_action(params, run.env.obs(x)))
     act = lambda obs: np.asarray(mean(jnp.asarray(to_state(obs)))) * scale
     out = {"wall_s": wall, **diffgcl_env_steps(run)}
+    out["compile_s"] = run.result.compile_seconds  # the runner's own split of the wall time
+    out["run_s"] = run.result.run_seconds
     out["train"] = judge(task, act, train)
     out["held_out"] = judge(task, act, held_out)
     rep = run.report(reoptimise=False)
