@@ -40,13 +40,16 @@ bench: $(STAMP)
 
 # The peer stack (imitation, stable-baselines3, torch CPU) beside diffgcl in a virtual environment
 # of its own, experiments/peers/.venv (docs/peers.md); then run experiments/peers/vs_imitation.py.
+# torch's CPU build comes first, from PyTorch's CPU index (TORCH_INDEX= leaves it to PyPI and
+# local wheels), so that only torch and its few dependencies are looked up there.
 PEERS := experiments/peers/.venv
-$(PEERS)/.installed: experiments/peers/requirements.txt pyproject.toml
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+$(PEERS)/.installed: experiments/peers/requirements.txt experiments/peers/no-deps.txt pyproject.toml
 	$(PY) -m venv $(PEERS)
 	$(PEERS)/bin/python -m pip install --quiet --upgrade pip
-	$(PEERS)/bin/python -m pip install --quiet -e '.[dev,gym]' \
-		-r experiments/peers/requirements.txt \
-		--extra-index-url https://download.pytorch.org/whl/cpu
+	$(PEERS)/bin/python -m pip install --quiet torch==2.13.0 \
+		$(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX))
+	$(PEERS)/bin/python -m pip install --quiet -e '.[dev,gym]' -r experiments/peers/requirements.txt
 	$(PEERS)/bin/python -m pip install --quiet --no-deps -r experiments/peers/no-deps.txt
 	touch $(PEERS)/.installed
 
