@@ -6,7 +6,7 @@ BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 export DIFFGCL_CACHE ?= $(CURDIR)/.cache
 
-.PHONY: demo test test-slow lint format docs bench clean
+.PHONY: demo test test-slow lint format docs bench clean peers
 
 $(STAMP): pyproject.toml
 	$(PY) -m venv $(VENV)
@@ -37,6 +37,23 @@ docs: $(STAMP)
 
 bench: $(STAMP)
 	$(BIN)/python experiments/bench_sim.py --fast
+
+# The peer stack (imitation, stable-baselines3, torch CPU) beside diffgcl in a virtual environment
+# of its own, experiments/peers/.venv (docs/peers.md); then run experiments/peers/vs_imitation.py.
+# torch's CPU build comes first, from PyTorch's CPU index (TORCH_INDEX= leaves it to PyPI and
+# local wheels), so that only torch and its few dependencies are looked up there.
+PEERS := experiments/peers/.venv
+TORCH_INDEX ?= https://download.pytorch.org/whl/cpu
+$(PEERS)/.installed: experiments/peers/requirements.txt experiments/peers/no-deps.txt pyproject.toml
+	$(PY) -m venv $(PEERS)
+	$(PEERS)/bin/python -m pip install --quiet --upgrade pip
+	$(PEERS)/bin/python -m pip install --quiet torch==2.13.0 \
+		$(if $(TORCH_INDEX),--extra-index-url $(TORCH_INDEX))
+	$(PEERS)/bin/python -m pip install --quiet -e '.[dev,gym]' -r experiments/peers/requirements.txt
+	$(PEERS)/bin/python -m pip install --quiet --no-deps -r experiments/peers/no-deps.txt
+	touch $(PEERS)/.installed
+
+peers: $(PEERS)/.installed
 
 clean:
 	rm -rf $(VENV) .cache runs site
