@@ -188,45 +188,6 @@ def join(
     except Exception as err:  # JAX raises XlaRuntimeError or ValueError with a multi-line text
         first = str(err).strip().splitlines()[0] if str(err).strip() else type(err).__name__
         raise RuntimeError(f"could not join as {settings.describe()}: {first}") from None
-    write_cache_from_every_process()
-    return True
-
-
-def write_cache_from_every_process() -> bool:
-    """Let every process of a multi-process run write its compiled programs into the persistent
-    compilation cache, not only process 0 (JAX's rule, made against write contention on shared
-    object stores). On CPU every process compiles programs for its own devices, whose cache keys
-    differ from process 0's (the device assignment is part of the key), so under JAX's rule every
-    process but 0 compiled afresh in every run. Each process writes only its own keys, through
-    the same atomic file writes process 0 uses. Returns False, and changes nothing, where JAX's
-    private hook has moved (a later JAX), or the cache is not a local folder."""
-    try:
-        from jax._src import compiler
-        from jax._src import distributed as jax_distributed
-    except ImportError:
-        return False
-    original = getattr(compiler, "_cache_write", None)
-    if original is None or not hasattr(jax_distributed.global_state, "process_id"):
-        return False
-    if getattr(original, "every_process", False):
-        return True
-    cache_dir = jax.config.jax_compilation_cache_dir or ""
-    if "://" in cache_dir:
-        return False
-
-    def write(*args, **kwargs):
-        state = jax_distributed.global_state
-        own = state.process_id
-        if own == 0:
-            return original(*args, **kwargs)
-        state.process_id = 0  # JAX's write checks this id only
-        try:
-            return original(*args, **kwargs)
-        finally:
-            state.process_id = own
-
-    write.every_process = True
-    compiler._cache_write = write
     return True
 
 
