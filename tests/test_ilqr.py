@@ -180,3 +180,99 @@ def test_controller_reproduces_the_solution():
     assert diag.mean() == pytest.approx(0.05)
     ratio = np.asarray(scaled.cov) / np.asarray(ctrl.cov)
     np.testing.assert_allclose(ratio, ratio.flat[0], rtol=1e-10)
+
+
+def _numpy_cost_and_gradient(A, B, c, quad, x0):
+    """J(U) of the LQ problem and its gradient by the adjoint recursion, in NumPy (the
+    reference for the control-limited tests)."""
+    n = np.asarray
+    l_x, l_u, l_xx = n(quad.l_x), n(quad.l_u), n(quad.l_xx)
+    l_uu, l_ux = n(quad.l_uu), n(quad.l_ux)
+    l0 = n(quad.l)
+    T = l_u.shape[0] - 1
+
+    def J_and_grad(U_flat):
+        U = U_flat.reshape(T, -1)
+        X = [x0]
+        for t in range(T):
+            X.append(A @ X[-1] + B @ U[t] + c)
+        J = sum(
+            l0[t] + l_x[t] @ X[t] + l_u[t] @ U[t] + 0.5 * X[t] @ l_xx[t] @ X[t]
+            + 0.5 * U[t] @ l_uu[t] @ U[t] + U[t] @ l_ux[t] @ X[t]
+            for t in range(T)
+        ) + l0[T] + l_x[T] @ X[T] + 0.5 * X[T] @ l_xx[T] @ X[T]  # fmt: skip
+        lam = l_x[T] + l_xx[T] @ X[T]  # ∂J/∂x_T
+        grad = np.zeros_like(U)
+        for t in reversed(range(T)):
+            grad[t] = l_u[t] + l_uu[t] @ U[t] + l_ux[t] @ X[t] + B.T @ lam
+            lam = l_x[t] + l_xx[t] @ X[t] + l_ux[t].T @ U[t] + A.T @ lam
+        return J, grad.ravel()
+
+    return J_and_grad
+
+
+def test_control_limited_lq_problem_meets_kkt_and_matches_scipy():
+    """A linear-quadratic problem whose unconstrained optimum breaks the action box: control-
+    limited iLQR ends at the box QP's optimum — its projected gradient (NumPy adjoint) vanishes,
+    and its cost and actions equal scipy's L-BFGS-B on the condensed problem."""
+    from scipy.optimize import minimize
+
+    T = 8
+    A, B, c, quad, x0, step, cost = _lq_problem(T=T)
+    free = ilqr(step, cost, jnp.asarray(x0), jnp.zeros((T, 2)))
+    limit = 0.4 * np.abs(np.asarray(free.U)).max(axis=0)  # per action: the optimum saturates
+    config = ILQRConfig(tol=1e-13)
+    lo, hi = -jnp.asarray(limit), jnp.asarray(limit)
+    solve = jax.jit(lambda x0: ilqr(step, cost, x0, jnp.zeros((T, 2)), config, u_min=lo, u_max=hi))
+    result = solve(jnp.asarray(x0))
+    U = np.asarray(result.U)
+    assert int(result.status) == CONVERGED
+    assert np.all(np.abs(U) <= limit + 1e-12)
+    at_limit = np.isclose(np.abs(U), limit, rtol=0, atol=1e-9)
+    assert at_limit.sum() >= 2
+    J_and_grad = _numpy_cost_and_gradient(A, B, c, quad, x0)
+    J, grad = J_and_grad(U.ravel())
+    grad = grad.reshape(T, 2)
+    assert J == pytest.approx(float(result.cost), rel=1e-12)
+    # KKT: zero gradient on free actions; at a limit it points outwards (−∂J/∂u towards the bound).
+    scale = np.abs(grad).max()
+    assert np.abs(grad[~at_limit]).max() < 1e-6 * scale
+    assert np.all(grad[at_limit] * np.sign(U[at_limit]) <= 1e-9 * scale)
+    ref = minimize(J_and_grad, np.zeros(2 * T), jac=True, method="L-BFGS-B",
+                   bounds=[(-limit[i % 2], limit[i % 2]) for i in range(2 * T)],
+                   options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10_000})  # fmt: skip
+    assert float(result.cost) <= ref.fun + 1e-9 * abs(ref.fun)
+    np.testing.assert_allclose(U.ravel(), ref.x, atol=1e-5)
+    # The gains on a saturated action are zero (it cannot respond to a deviation).
+    K = np.asarray(result.K)
+    assert np.abs(K[at_limit]).max() == 0.0
+
+
+def test_control_limited_line_search_never_increases_the_cost():
+    """The pendulum swing-up with its torque limited to ±2: every rollout respects the box, the
+    cost never rises, and the solution uses the limit (where an unconstrained iLQR would not
+    stay inside it)."""
+    T = 40
+    step, cost = _pendulum(T=T)
+    U0 = jnp.zeros((T, 1))
+    solve = jax.jit(lambda x0, lo, hi: ilqr(step, cost, x0, U0, u_min=lo, u_max=hi))
+    unlimited = jax.jit(lambda x0: ilqr(step, cost, x0, jnp.zeros((T, 1))))(jnp.zeros(2))
+    assert float(jnp.abs(unlimited.U).max()) > 2.0
+    result = solve(jnp.zeros(2), -2.0, 2.0)
+    history = np.asarray(result.cost_history)
+    history = history[np.isfinite(history)]
+    assert np.all(np.diff(history) <= 0.0), history
+    assert float(jnp.abs(result.U).max()) <= 2.0 + 1e-12
+    assert float(jnp.abs(result.U).max()) == pytest.approx(2.0)
+    assert float(result.cost) >= float(unlimited.cost)  # a tighter box cannot do better
+    assert int(result.status) == CONVERGED
+
+
+def test_infinite_limits_equal_the_unconstrained_solver():
+    T = 20
+    step, cost = _pendulum(T=T)
+    x0 = jnp.array([0.3, -0.5])
+    free = ilqr(step, cost, x0, jnp.zeros((T, 1)))
+    boxed = ilqr(step, cost, x0, jnp.zeros((T, 1)), u_min=-jnp.inf, u_max=jnp.inf)
+    np.testing.assert_allclose(boxed.U, free.U, rtol=0, atol=1e-10)
+    np.testing.assert_allclose(boxed.K, free.K, rtol=0, atol=1e-9)

@@ -66,6 +66,41 @@ def test_ilqr_through_mjx_equals_riccati(env):
     np.testing.assert_allclose(result.K[0], K, rtol=0, atol=1e-7)
 
 
+def test_control_limits_come_from_ctrlrange(env):
+    """The slider's ±5 ctrlrange is ±1 in its normalised actions. From 3 m away the
+    unconstrained iLQR asks for more than the actuator gives (MuJoCo clamps it: no effect, only
+    action cost); the control-limited solution stays in the box, costs less, and is the
+    box-constrained optimum of the linear model (scipy's L-BFGS-B on the condensed problem,
+    NumPy rollout)."""
+    from scipy.optimize import minimize
+
+    lo, hi = env.action_bounds()
+    np.testing.assert_allclose(lo, [-1.0])
+    np.testing.assert_allclose(hi, [1.0])
+    x0 = jnp.asarray([[3.0, 0.0]])
+    config = ILQRConfig(tol=1e-12)
+    solve = jax.jit(lambda x, limits: trajopt.solve(env, cost, x, config=config, limits=limits),
+                    static_argnums=1)  # fmt: skip
+    free, boxed = solve(x0, False), solve(x0, True)
+    assert float(jnp.abs(free.U).max()) > 1.0 + 1e-3
+    assert float(boxed.cost[0]) < float(free.cost[0])
+    U = np.asarray(boxed.U[0, :, 0])
+    assert np.abs(U).max() <= 1.0 + 1e-12 and np.isclose(np.abs(U).max(), 1.0)
+    A, B = (np.asarray(a) for a in linearize(env.step, x0[0], jnp.zeros(1)))
+
+    def J(U_flat):
+        x, total = np.asarray(x0[0]), 0.0
+        for t in range(T):
+            total += float(cost(jnp.asarray(x), jnp.asarray(U_flat[t : t + 1]), t))
+            x = A @ x + B[:, 0] * U_flat[t]
+        return total + float(cost(jnp.asarray(x), jnp.zeros(1), T))
+
+    ref = minimize(J, np.zeros(T), method="L-BFGS-B", bounds=[(-1.0, 1.0)] * T,
+                   options={"ftol": 1e-15, "gtol": 1e-10})  # fmt: skip
+    assert float(boxed.cost[0]) <= ref.fun * (1 + 1e-7)
+    np.testing.assert_allclose(U, ref.x, atol=1e-4)
+
+
 def test_restarts_keep_the_lowest_cost(env):
     """solve_restarts: zeros and ±scale per actuator; per start the kept solution is the
     lowest-cost one, and it is that start's run from that initial sequence."""

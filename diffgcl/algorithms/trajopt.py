@@ -25,11 +25,25 @@ from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import lax
 
 from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams, GPSMetrics, GPSState, make_gps
 from diffgcl.control.ilqr import ILQRConfig, ILQRResult, ilqr, ilqr_controller
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey
+
+
+def action_bounds(env: Env) -> tuple[np.ndarray, np.ndarray] | None:
+    """The env's action box ``(u_min, u_max)`` where it has one with a finite side (an env with
+    an ``action_bounds()`` method, such as :class:`~diffgcl.envs.mjcf_env.MJCFEnv` from the
+    actuators' ``ctrlrange``); None: unlimited."""
+    method = getattr(env, "action_bounds", None)
+    if method is None:
+        return None
+    lo, hi = method()
+    if not (np.isfinite(lo).any() or np.isfinite(hi).any()):
+        return None
+    return lo, hi
 
 
 def solve(
@@ -38,11 +52,16 @@ def solve(
     x0: Array,
     U_init: Array | None = None,
     config: ILQRConfig | None = None,
+    *,
+    limits: bool = True,
 ) -> ILQRResult:
     """iLQR on ``env.step`` with ``cost`` from each start state ``x0: [C, dX]`` (pure; jit it).
 
     U_init: [T, dU] or [C, T, dU] initial actions (default zeros, ``T = env.horizon``).
-    Returns an :class:`~diffgcl.control.ilqr.ILQRResult` with leading axis C.
+    limits: control-limited iLQR on the env's :func:`action_bounds` where it has any (the
+    simulator clamps actions beyond them, so an unconstrained solution would push where it has
+    no authority); False: unconstrained. Returns an :class:`~diffgcl.control.ilqr.ILQRResult`
+    with leading axis C.
     """
     x0 = jnp.atleast_2d(x0)
     T, dU = env.horizon, env.dU
@@ -54,7 +73,11 @@ def solve(
                          f"{tuple(U.shape)}")  # fmt: skip
     U = jnp.broadcast_to(U, (x0.shape[0], T, dU))
     config = ILQRConfig() if config is None else config
-    return jax.vmap(lambda x, u: ilqr(env.step, cost, x, u, config))(x0, U)
+    box = action_bounds(env) if limits else None
+    u_min, u_max = (None, None) if box is None else box
+    return jax.vmap(lambda x, u: ilqr(env.step, cost, x, u, config, u_min=u_min, u_max=u_max))(
+        x0, U
+    )
 
 
 def restart_actions(T: int, dU: int, scale: float, dtype=None) -> Array:

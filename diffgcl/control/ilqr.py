@@ -1,4 +1,5 @@
-"""iLQR: unconstrained trajectory optimisation of a known cost through a differentiable simulator.
+"""iLQR: trajectory optimisation of a known cost through a differentiable simulator, with or
+without box limits on the actions.
 
 Problem (one start state): minimise ``J(U) = Σ_{t<T} c(x_t, u_t, t) + c(x_T, 0, T)`` over the
 actions ``U = u_0 .. u_{T-1}`` subject to ``x_{t+1} = f(x_t, u_t)``, ``x_0`` given. Each
@@ -20,6 +21,15 @@ iteration (Li & Todorov 2004; the regularisation and line search of Tassa, Erez 
    ``armijo`` times the decrease the quadratic model predicts, ``ΔJ(α) = α Σ kᵀQ_u +
    ½α² Σ kᵀQ_uu k``. With no acceptable α, μ rises and the backward pass is repeated on the same
    linearisation.
+
+Control limits (Tassa, Mansard & Todorov 2014), given as ``u_min ≤ u ≤ u_max``: the rollouts
+clip their actions, and in the backward pass ``k_t`` minimises the quadratic model ``½kᵀ(Q_uu +
+μI)k + Q_uᵀk`` on the box ``u_min − U_t ≤ k ≤ u_max − U_t`` (projected Newton,
+:mod:`diffgcl.control.box_qp`, warm-started at the last pass's ``k``), and ``K_t`` is solved on
+the actions left free, zero on those held at a limit. Without it, where MuJoCo clamps ``ctrl``
+to an actuator's ``ctrlrange`` the linearised ``B`` is zero past the limit and the Newton step
+asks for ever larger actions that do nothing (gymnasium's double pendulum: actions of 50–60× the
+range, the cart on its rail, both links fallen).
 
 Stopping: the accepted step improved the cost by less than ``tol·(1 + |J|)``, or the model predicts
 less than that at ``α = 1`` with μ at its floor (a stationary point), or μ exceeds ``mu_max``, or
@@ -48,6 +58,8 @@ from flax import struct
 from jax import lax
 
 from diffgcl import linalg
+from diffgcl.control.box_qp import box_qp
+from diffgcl.control.init import with_mean_variance
 from diffgcl.costs.expansion import expand_cost, expand_residual_cost, trajectory_cost
 from diffgcl.dynamics.autodiff import linearize_trajectory
 from diffgcl.types import Array, CostFn, LinearGaussianController, QuadraticCost, make_controller
@@ -137,30 +149,59 @@ class _Backward:
     ok: Array
 
 
-def backward_pass(A: Array, B: Array, quad: QuadraticCost, mu: Array) -> _Backward:
+def backward_pass(
+    A: Array,
+    B: Array,
+    quad: QuadraticCost,
+    mu: Array,
+    lower: Array | None = None,
+    upper: Array | None = None,
+    k_init: Array | None = None,
+) -> _Backward:
     """The iLQR backward pass (module docstring, step 2) on deviations from the trajectory.
 
     A: [T, dX, dX], B: [T, dX, dU]; quad: the cost expanded *about the trajectory* (T+1 entries);
     mu: scalar regularisation. A step whose ``Q_uu + μI`` is not positive definite (or any
     non-finite value) sets ``ok = False``; the outputs stay finite (zero gains) either way.
+
+    lower, upper: [T, dU] bounds on the action *deviations* (the actuators' range minus the
+    current actions) for control-limited iLQR: ``k_t`` then solves the box QP ``min ½kᵀQ_uu k +
+    Q_uᵀk`` on them (:func:`~diffgcl.control.box_qp.box_qp`, warm-started from ``k_init``) and
+    ``K_t`` is solved on the free actions only, zero rows on the clamped ones (Tassa et al.
+    2014). None: unconstrained.
     """
     dU = B.shape[-1]
     eye_u = jnp.eye(dU, dtype=B.dtype)
+    boxed = lower is not None or upper is not None
+    if boxed:
+        T = B.shape[0]
+        inf = jnp.full((T, dU), jnp.inf, B.dtype)
+        lower = -inf if lower is None else jnp.broadcast_to(lower, (T, dU))
+        upper = inf if upper is None else jnp.broadcast_to(upper, (T, dU))
+        k_init = jnp.zeros((T, dU), B.dtype) if k_init is None else k_init
+
+    def gains(Q_reg, Q_u, Q_ux, box):
+        """(k, K, positive definite) of one step."""
+        L = linalg.cholesky(Q_reg)
+        pd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+        L = jnp.where(pd, L, eye_u)
+        if box is None:
+            return -linalg.cho_solve(L, Q_u), -linalg.cho_solve(L, Q_ux), pd
+        lo, hi, k0 = box
+        qp = box_qp(Q_reg, Q_u, lo, hi, k0)
+        K = -linalg.cho_solve(qp.L_free, jnp.where(qp.free[:, None], Q_ux, 0.0))
+        return qp.x, K, pd & qp.ok
 
     def step(carry, inputs):
         V_x, V_xx, dV1, dV2, ok = carry
-        A_t, B_t, l_x, l_u, l_xx, l_uu, l_ux = inputs
+        A_t, B_t, l_x, l_u, l_xx, l_uu, l_ux, box = inputs
         Q_x = l_x + A_t.T @ V_x
         Q_u = l_u + B_t.T @ V_x
         Q_xx = l_xx + A_t.T @ V_xx @ A_t
         Q_uu = linalg.symmetrise(l_uu + B_t.T @ V_xx @ B_t)
         Q_ux = l_ux + B_t.T @ V_xx @ A_t
         Q_reg = Q_uu + mu * eye_u
-        L = linalg.cholesky(Q_reg)
-        pd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
-        L = jnp.where(pd, L, eye_u)
-        k = -linalg.cho_solve(L, Q_u)
-        K = -linalg.cho_solve(L, Q_ux)
+        k, K, pd = gains(Q_reg, Q_u, Q_ux, box)
         V_x_new = Q_x + K.T @ (Q_uu @ k) + K.T @ Q_u + Q_ux.T @ k
         V_xx_new = linalg.symmetrise(Q_xx + K.T @ Q_uu @ K + K.T @ Q_ux + Q_ux.T @ K)
         good = (
@@ -180,19 +221,31 @@ def backward_pass(A: Array, B: Array, quad: QuadraticCost, mu: Array) -> _Backwa
     V_x, V_xx = quad.l_x[-1], linalg.symmetrise(quad.l_xx[-1])
     zero = jnp.zeros((), B.dtype)
     init = (V_x, V_xx, zero, zero, jnp.all(jnp.isfinite(V_x)) & jnp.all(jnp.isfinite(V_xx)))
-    xs = (A, B, quad.l_x[:-1], quad.l_u[:-1], quad.l_xx[:-1], quad.l_uu[:-1], quad.l_ux[:-1])
+    box = (lower, upper, k_init) if boxed else None
+    xs = (A, B, quad.l_x[:-1], quad.l_u[:-1], quad.l_xx[:-1], quad.l_uu[:-1], quad.l_ux[:-1], box)
     (_, _, dV1, dV2, ok), (K, k, Q_reg) = lax.scan(step, init, xs, reverse=True)
     return _Backward(K=K, k=k, Q_uu=Q_reg, dV1=dV1, dV2=dV2, ok=ok)
 
 
 def closed_loop_rollout(
-    step: StepFn, cost: CostFn, x0: Array, X: Array, U: Array, K: Array, k: Array, alpha: Array
+    step: StepFn,
+    cost: CostFn,
+    x0: Array,
+    X: Array,
+    U: Array,
+    K: Array,
+    k: Array,
+    alpha: Array,
+    bounds: tuple[Array, Array] | None = None,
 ) -> tuple[Array, Array, Array]:
-    """``u_t = U_t + α k_t + K_t (x_t − X_t)`` from ``x0`` -> (X' [T+1, dX], U' [T, dU], J')."""
+    """``u_t = U_t + α k_t + K_t (x_t − X_t)`` from ``x0`` -> (X' [T+1, dX], U' [T, dU], J'),
+    the actions clipped to ``bounds = (u_min, u_max)`` ([dU] each) where given."""
 
     def body(x, inputs):
         X_t, U_t, K_t, k_t = inputs
         u = U_t + alpha * k_t + K_t @ (x - X_t)
+        if bounds is not None:
+            u = jnp.clip(u, bounds[0], bounds[1])
         return step(x, u), (x, u)
 
     x_T, (X_new, U_new) = lax.scan(body, x0, (X[:-1], U, K, k))
@@ -225,16 +278,31 @@ def ilqr(
     x0: Array,
     U_init: Array,
     config: ILQRConfig = ILQRConfig(),
+    *,
+    u_min: Array | None = None,
+    u_max: Array | None = None,
 ) -> ILQRResult:
     """Minimise the cost of the rollout from ``x0: [dX]`` over actions, starting from
     ``U_init: [T, dU]`` (module docstring). ``step(x, u) -> x'`` and ``cost(x, u, t)`` are pure
     JAX functions for one instance (a residual ``r(x, u, t)`` with ``config.gauss_newton``);
     vmap over ``x0`` (and any traced values ``cost`` closes over) at the call site.
+
+    u_min, u_max: [dU] (or scalars; ±inf for an unlimited action) the actions' box, for
+    control-limited iLQR (module docstring): ``U_init`` is clipped to it, every rollout clips its
+    actions, and the backward pass solves a box QP per step. Give them wherever the simulator
+    clamps the actions (MuJoCo's ``ctrlrange``): past a limit the simulator's ``B`` is zero and
+    unconstrained iLQR keeps pushing where it has no authority. None (both): unconstrained.
     """
     T, dU = U_init.shape
     dX = x0.shape[-1]
     dtype = x0.dtype
     U_init = U_init.astype(dtype)
+    bounds = None
+    if u_min is not None or u_max is not None:
+        lo = -jnp.inf if u_min is None else u_min
+        hi = jnp.inf if u_max is None else u_max
+        bounds = tuple(jnp.broadcast_to(jnp.asarray(b, dtype), (dU,)) for b in (lo, hi))
+        U_init = jnp.clip(U_init, bounds[0], bounds[1])
     tol, armijo = config.tol, config.armijo
     n_hist = config.max_iterations + 1
     if config.gauss_newton:
@@ -261,7 +329,7 @@ def ilqr(
             i, _, X_best, U_best, J_best = c
             alpha = jnp.asarray(config.backtrack, dtype) ** i
             X_new, U_new, J_new = closed_loop_rollout(
-                step, true_cost, x0, s.X, s.U, b.K, b.k, alpha
+                step, true_cost, x0, s.X, s.U, b.K, b.k, alpha, bounds
             )
             predicted = -(alpha * b.dV1 + alpha**2 * b.dV2)
             ok = jnp.isfinite(J_new) & (J_new < s.J) & (s.J - J_new >= armijo * predicted)
@@ -291,7 +359,10 @@ def ilqr(
         delta = jnp.where(accepted, delta_down, delta_up).astype(dtype)
         mu = jnp.where(first, jnp.asarray(config.mu_init, dtype), mu)
         delta = jnp.where(first, jnp.ones((), dtype), delta)
-        back = backward_pass(A, B, quad, mu)
+        if bounds is None:
+            back = backward_pass(A, B, quad, mu)
+        else:  # the box on the deviations from the current actions, warm-started at the last k
+            back = backward_pass(A, B, quad, mu, bounds[0] - U, bounds[1] - U, s.back.k)
         scale = tol * (1.0 + jnp.abs(J))
         small_step = accepted & ~first & (improvement < scale)
         predicted = -(back.dV1 + back.dV2)
@@ -390,14 +461,9 @@ def ilqr_controller(
       the cost leaves free. ``v`` may be traced.
     """
     cov = linalg.inverse_from_cholesky(linalg.cholesky(result.Q_uu))
-    cov = linalg.symmetrise(cov)
-    if init_var is None:
-        cov = temperature * cov
-    else:
-        mean_var = jnp.mean(jnp.diagonal(cov, axis1=-2, axis2=-1))
-        cov = cov * (jnp.asarray(init_var, cov.dtype) / mean_var)
     k = result.U - jnp.einsum("tij,tj->ti", result.K, result.X[:-1])
-    return make_controller(result.K, k, cov)
+    controller = make_controller(result.K, k, temperature * linalg.symmetrise(cov))
+    return controller if init_var is None else with_mean_variance(controller, init_var)
 
 
 def describe(result: ILQRResult) -> list[str]:

@@ -31,3 +31,16 @@ def init_controller(
     var = jnp.broadcast_to(jnp.asarray(init_var, dtype), (dU,))
     cov = jnp.broadcast_to(jnp.diag(var), (T, dU, dU))
     return make_controller(K, k, cov)
+
+
+def with_mean_variance(
+    controller: LinearGaussianController, init_var: float | Array
+) -> LinearGaussianController:
+    """The same gains, the covariance rescaled so that the mean over time and actions of its
+    diagonal is ``init_var`` (its shape kept): GPS's exploration budget ``init_var`` spent in
+    the directions the given covariance leaves free. ``init_var`` may be traced."""
+    cov = controller.cov
+    mean_var = jnp.mean(jnp.diagonal(cov, axis1=-2, axis2=-1))
+    return make_controller(
+        controller.K, controller.k, cov * (jnp.asarray(init_var, cov.dtype) / mean_var)
+    )

@@ -113,6 +113,13 @@ class MJCFEnv:
             return ctrl
         return ctrl / np.asarray(self.ctrl_scale)
 
+    def action_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(u_min, u_max)``: [nu] each, the actuators' ``ctrlrange`` in actions (±inf where an
+        actuator is not ctrl-limited). MuJoCo clamps ``ctrl`` to it, so an action beyond it does
+        nothing more: what control-limited trajectory optimisation needs to know."""
+        lo, hi = (self.action_from_ctrl(self.ctrl_range[:, i]) for i in (0, 1))
+        return np.asarray(lo, float), np.asarray(hi, float)
+
     def _data(self, x: Array, ctrl: Array) -> mjx.Data:
         qpos, qvel, act = self.mujoco_from_state(x)
         d = self.data0.replace(qpos=qpos, qvel=qvel, ctrl=ctrl)
