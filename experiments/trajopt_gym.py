@@ -300,10 +300,18 @@ def run_task(name, task, args) -> dict:
               f"(mean), {r['seconds']:.2f} s after compile ({r['compile_seconds']:.0f} s "
               "compile)")  # fmt: skip
 
-    program = jax.jit(lambda x0: trajopt.solve(env, task.cost, x0, config=config))
+    out["action_bounds"] = [np.asarray(b).tolist() for b in env.action_bounds()]
+    solve = lambda x0, limits: trajopt.solve(env, task.cost, x0, config=config, limits=limits)
+    program = jax.jit(lambda x0: solve(x0, args.limits))
     result, seconds, compile_s = timed(program, X0)
     out["ilqr"] = record(result, seconds, compile_s)
-    show("iLQR from zero actions", out["ilqr"])
+    out["ilqr"]["control_limited"] = args.limits
+    show(f"iLQR from zero actions{'' if args.limits else ', no control limits'}", out["ilqr"])
+    if args.limits and args.unlimited_row:  # the same problem without the box, for comparison
+        unlimited, seconds, compile_s = timed(jax.jit(lambda x0: solve(x0, False)), X0)
+        out["ilqr_unlimited"] = record(unlimited, seconds, compile_s)
+        out["ilqr_unlimited"]["max_abs_action"] = float(jnp.abs(unlimited.U).max())
+        show("iLQR without control limits", out["ilqr_unlimited"])
     if args.restarts:  # the best of zero and ±0.1 constant actions per actuator
         program = jax.jit(lambda x0: trajopt.solve_restarts(env, task.cost, x0, config))
         (kept, best, runs), seconds, compile_s = timed(program, X0)
@@ -405,6 +413,15 @@ def main(argv=None) -> int:
     parser.add_argument("--gps-seeds", type=int, default=1)
     parser.add_argument("--trajax", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--restarts", action="store_true", help="also iLQR's best of 1 + 2·dU")
+    parser.add_argument(
+        "--limits",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="control-limited iLQR on the actuators' ctrlrange (the library's default)",
+    )
+    parser.add_argument(
+        "--unlimited-row", action="store_true", help="also iLQR without control limits"
+    )
     parser.add_argument(
         "--hard", action="store_true", help="pendulum: tilts ±0.15 rad, cart 0.1–0.2 m off"
     )
