@@ -418,3 +418,26 @@ def test_training_past_the_demos_window(slider):
         jax.jit(make_train(tiny_config("v2"), dataclasses.replace(env, horizon=10)).train)(
             jax.random.PRNGKey(0), demos
         )
+
+
+def test_gps_can_start_from_the_demos_controller(slider):
+    """initial_controller="demos": GPS's first controller is the demos' fitted one (same gains,
+    covariance of its shape with mean variance init_var); "zero": K = 0, k = 0, Σ = init_var·I."""
+    env, demos = slider
+    key = jax.random.PRNGKey(0)
+    for start in ("zero", "demos"):
+        config = tiny_config("v2", iterations=1, initial_controller=start)
+        rgcl = make_train(config, env)
+        state = jax.jit(rgcl.init)(key, demos)
+        ctrl = state.gps.controller
+        var = np.diagonal(np.asarray(ctrl.cov), axis1=-2, axis2=-1)
+        assert var.mean() == pytest.approx(config.gps.init_var)
+        if start == "zero":
+            assert not np.any(np.asarray(ctrl.K)) and not np.any(np.asarray(ctrl.k))
+        else:
+            np.testing.assert_array_equal(np.asarray(ctrl.K), np.asarray(demos.controller.K))
+            np.testing.assert_array_equal(np.asarray(ctrl.k), np.asarray(demos.controller.k))
+            ratio = np.asarray(ctrl.cov) / np.asarray(demos.controller.cov)
+            np.testing.assert_allclose(ratio, ratio.flat[0], rtol=1e-9)
+    with pytest.raises(ValueError, match="initial_controller"):
+        tiny_config("v2", initial_controller="ilqr")

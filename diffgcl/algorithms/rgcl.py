@@ -87,6 +87,7 @@ from diffgcl.algorithms.mdgps import (
     make_policy_phases,
     make_policy_sampling,
 )
+from diffgcl.control.init import with_mean_variance
 from diffgcl.control.lqr import controller_entropy
 from diffgcl.costs.buffer import SampleBuffer, buffer_add, init_buffer
 from diffgcl.costs.demo_controller import fit_demo_controller
@@ -116,6 +117,7 @@ from diffgcl.types import Array, Env, LinearDynamics, LinearGaussianController, 
 SCHEDULES = ("v1", "v2")
 SAMPLE_SOURCES = ("buffer", "model")
 TEMPERATURES = ("likelihood", "demos")
+INITIAL_CONTROLLERS = ("zero", "demos")
 
 
 @dataclass(frozen=True)
@@ -142,7 +144,12 @@ class RGCLConfig:
     needs ``DemoBatch.dynamics``); temperature_start, temperature_ramp: with ``"demos"``, ρ stays
     0 until ``temperature_start`` cost updates are done, then grows linearly to the calibrated
     value over ``temperature_ramp`` more (0: at once; both 0: calibrated from the pre-training
-    on), so that GPS explores at the likelihood's scale while the cost takes shape.
+    on), so that GPS explores at the likelihood's scale while the cost takes shape;
+    initial_controller: where GPS starts — ``"zero"``: K = 0, k = 0, Σ = init_var·I (the seed's
+    rGCL); ``"demos"``: the demos' own fitted controller per condition (``DemoBatch.controller``)
+    with its covariance rescaled to a mean variance of init_var
+    (:func:`diffgcl.control.init.with_mean_variance`), for tasks where a zero controller fails
+    at once (a pendulum falls before GPS's KL-bounded steps can catch it).
     """
 
     schedule: str = "v2"
@@ -165,6 +172,7 @@ class RGCLConfig:
     temperature: str = "likelihood"
     temperature_start: int = 0
     temperature_ramp: int = 0
+    initial_controller: str = "zero"
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -172,6 +180,11 @@ class RGCLConfig:
         if self.sample_source not in SAMPLE_SOURCES:
             raise ValueError(
                 f"RGCLConfig: sample_source {self.sample_source!r}; choose one of {SAMPLE_SOURCES}"
+            )
+        if self.initial_controller not in INITIAL_CONTROLLERS:
+            raise ValueError(
+                f"RGCLConfig: initial_controller {self.initial_controller!r}; choose one of "
+                f"{INITIAL_CONTROLLERS}"
             )
         if self.temperature not in TEMPERATURES:
             raise ValueError(
@@ -538,7 +551,11 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
     def init(key: PRNGKey, demos: DemoBatch, hparams: RGCLHyperparams | None = None) -> RGCLState:
         hp = default_hparams() if hparams is None else hparams
         key_gps, key_net, key_samples, key_pretrain = jax.random.split(key, 4)
-        gps = phases.init(key_gps, GPSHyperparams(kl_step=hp.kl_step, init_var=hp.init_var))
+        start = None
+        if config.initial_controller == "demos":
+            start = with_mean_variance(demos.controller, hp.init_var)
+        gps_hp = GPSHyperparams(kl_step=hp.kl_step, init_var=hp.init_var)
+        gps = phases.init(key_gps, gps_hp, controller=start)
         params = network.init(key_net)
         params = params.replace(norm=network.fit_normaliser(demos.X))
         optimiser = _make_optimiser(gcl_cfg, hp.cost_lr)

@@ -540,9 +540,11 @@ def main(argv=None) -> int:
     methods = args.methods.split(",")
 
     import jax
-    import torch
 
-    torch.set_num_threads(1)
+    if set(methods) - {"diffgcl"}:  # diffgcl alone runs without the peer stack
+        import torch
+
+        torch.set_num_threads(1)
     jax.config.update("jax_enable_x64", True)  # iLQR through joint limits (docs/trajopt.md)
     from diffgcl.runtime import prepare_process
 
