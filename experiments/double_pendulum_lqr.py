@@ -50,9 +50,9 @@ def main(argv=None) -> int:
     grid = list(
         itertools.product((0.1, 1, 10), (1, 10, 100), (0.01, 0.1, 1), (0.001, 0.01, 0.1, 1))
     )
-    best = (-1, None)
-    for qx, qth, qv, r in grid:
-        Q, R = np.diag([qx, qth, qth, qv, qv, qv]), r * np.eye(1)
+
+    def balanced(Q, R):
+        """Per start: whether u = clip(−Kx, −1, 1), K the discrete LQR gain, passes the test."""
         P = solve_discrete_are(A, B, Q, R)
         K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
         solved = []
@@ -60,20 +60,16 @@ def main(argv=None) -> int:
             X = [x0]
             for _ in range(horizon):
                 X.append(step(X[-1], np.clip(-K @ X[-1], -1.0, 1.0)))
-            solved.append(bool(double_success(np.asarray(X))))
-        ever |= solved
+            solved.append(int(bool(double_success(np.asarray(X)))))
+        return solved
+
+    best = (-1, None)
+    for qx, qth, qv, r in grid:
+        solved = balanced(np.diag([qx, qth, qth, qv, qv, qv]), r * np.eye(1))
+        ever |= np.asarray(solved, bool)
         if sum(solved) > best[0]:
             best = (sum(solved), (qx, qth, qv, r), solved)
-    task_q = (1.0, 4.0, 4.0, 0.1, 0.1, 0.1)
-    Q, R = np.diag(task_q), 0.01 * np.eye(1)
-    P = solve_discrete_are(A, B, Q, R)
-    K = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)
-    task_solved = []
-    for x0 in X0:
-        X = [x0]
-        for _ in range(horizon):
-            X.append(step(X[-1], np.clip(-K @ X[-1], -1.0, 1.0)))
-        task_solved.append(int(bool(double_success(np.asarray(X)))))
+    task_solved = balanced(np.diag((1.0, 4.0, 4.0, 0.1, 0.1, 0.1)), 0.01 * np.eye(1))
     print(f"LQR with the task cost's weights: {sum(task_solved)}/{len(X0)} {task_solved}")
     print(f"best of {len(grid)} weightings {best[1]} (q_x, q_θ, q_v, r): {best[0]}/{len(X0)} "
           f"{np.asarray(best[2]).astype(int).tolist()}")  # fmt: skip
