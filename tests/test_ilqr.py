@@ -276,3 +276,33 @@ def test_infinite_limits_equal_the_unconstrained_solver():
     boxed = ilqr(step, cost, x0, jnp.zeros((T, 1)), u_min=-jnp.inf, u_max=jnp.inf)
     np.testing.assert_allclose(boxed.U, free.U, rtol=0, atol=1e-10)
     np.testing.assert_allclose(boxed.K, free.K, rtol=0, atol=1e-9)
+
+
+def test_actions_resting_at_a_limit_of_a_clipping_simulator():
+    """A simulator that clips its actions to the box (as MuJoCo clamps ``ctrl`` to
+    ``ctrlrange``), started from actions all at one limit or the other: the derivative of the
+    clip at the limit itself is not the simulator's (JAX gives half of it), so iLQR must
+    linearise just inside the box. It converges (not a stall) from every start, to the optimum
+    of the box-constrained problem (scipy's L-BFGS-B on the NumPy adjoint gradient)."""
+    from scipy.optimize import minimize
+
+    T = 8
+    A, B, c, quad, x0, _, cost = _lq_problem(T=T)
+    free = ilqr(lambda x, u: jnp.asarray(A) @ x + jnp.asarray(B) @ u + jnp.asarray(c), cost,
+                jnp.asarray(x0), jnp.zeros((T, 2)))  # fmt: skip
+    limit = 0.4 * np.abs(np.asarray(free.U)).max(axis=0)
+    lo, hi = -jnp.asarray(limit), jnp.asarray(limit)
+    step = lambda x, u: jnp.asarray(A) @ x + jnp.asarray(B) @ jnp.clip(u, lo, hi) + jnp.asarray(c)
+    signs = np.random.default_rng(3).choice([-1.0, 1.0], size=(6, T, 2))
+    U_init = jnp.asarray(signs * limit)
+    starts = jnp.asarray(x0) * jnp.linspace(0.5, 2.0, 6)[:, None]
+    config = ILQRConfig(tol=1e-12)
+    solve = jax.jit(jax.vmap(lambda x, U: ilqr(step, cost, x, U, config, u_min=lo, u_max=hi)))
+    result = solve(starts, U_init)
+    np.testing.assert_array_equal(np.asarray(result.status), CONVERGED)
+    bounds = [(-limit[i % 2], limit[i % 2]) for i in range(2 * T)]
+    for i in range(6):
+        J_and_grad = _numpy_cost_and_gradient(A, B, c, quad, np.asarray(starts[i]))
+        ref = minimize(J_and_grad, np.zeros(2 * T), jac=True, method="L-BFGS-B", bounds=bounds,
+                       options={"ftol": 1e-15, "gtol": 1e-12, "maxiter": 10_000})  # fmt: skip
+        assert float(result.cost[i]) <= ref.fun + 1e-8 * abs(ref.fun), i

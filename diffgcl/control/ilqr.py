@@ -303,6 +303,9 @@ def ilqr(
         hi = jnp.inf if u_max is None else u_max
         bounds = tuple(jnp.broadcast_to(jnp.asarray(b, dtype), (dU,)) for b in (lo, hi))
         U_init = jnp.clip(U_init, bounds[0], bounds[1])
+        # The limits moved inwards by 1e-5 of the range (unchanged where a limit is infinite).
+        margin = jnp.where(jnp.isfinite(bounds[1] - bounds[0]), 1e-5 * (bounds[1] - bounds[0]), 0.0)
+        inner = (bounds[0] + margin, bounds[1] - margin)
     tol, armijo = config.tol, config.armijo
     n_hist = config.max_iterations + 1
     if config.gauss_newton:
@@ -314,7 +317,13 @@ def ilqr(
         true_cost = cost
 
     def linearise(X, U):
-        A, B = linearize_trajectory(step, X, U)
+        # An action exactly at a limit is where the simulator's clip is not differentiable, and
+        # JAX's derivative there is the mean of the two sides (jnp.clip) or zero (lax.clamp):
+        # B at half its value or none, so the box QP can see a descent direction into the box
+        # that the simulator does not have. The limits only let an action move inwards, so B
+        # is taken just inside them: the one-sided derivative the step will see.
+        U_lin = U if bounds is None else jnp.clip(U, inner[0], inner[1])
+        A, B = linearize_trajectory(step, X, U_lin)
         return A, B, expand(X, U)
 
     def line_search(s: _Loop):
