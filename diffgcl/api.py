@@ -91,6 +91,7 @@ def expert_demos(
     path: str | os.PathLike | None = None,
     ilqr=None,
     restarts: bool = False,
+    initial: str = "zeros",
     verbose: bool = True,
 ) -> DemoSet:
     """Demonstrations for a user with a cost and no demos (:mod:`diffgcl.algorithms.trajopt`).
@@ -98,7 +99,9 @@ def expert_demos(
     iLQR on ``cost`` (default: the env's ``cost=``) from each start state ``x0: [C, dX]``
     (default: the env's conditions; with ``restarts`` the best of iLQR from zero actions and
     from a small constant action either way on each actuator,
-    :func:`diffgcl.algorithms.trajopt.solve_restarts`), then ``per_start`` noisy rollouts of
+    :func:`diffgcl.algorithms.trajopt.solve_restarts`; ``initial="goal_lqr"`` or ``"best"``
+    starts iLQR from the goal's LQR, for balancing an unstable system, see
+    :func:`diffgcl.algorithms.trajopt.solve`), then ``per_start`` noisy rollouts of
     each solution's closed-loop controller ``u ~ N(K x + k, Σ_t)``, white noise. ``Σ_t`` has the
     shape of ``(Q_uu,t + μI)⁻¹`` — the demonstrator varies most where the cost-to-go is flattest
     — and a mean variance of ``noise_var`` in the normalised actions (0.01: a standard deviation
@@ -142,7 +145,14 @@ def expert_demos(
     config = ILQRConfig() if ilqr is None else ilqr
     solve = jax.jit(
         lambda x: trajopt.ilqr_controllers(
-            env, cost, x, config=config, init_var=init_var, temperature=temp, restarts=restarts
+            env,
+            cost,
+            x,
+            config=config,
+            init_var=init_var,
+            temperature=temp,
+            restarts=restarts,
+            initial=initial,
         )
     )
     ctrl, result = solve(X0)

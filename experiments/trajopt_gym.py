@@ -301,14 +301,26 @@ def run_task(name, task, args) -> dict:
               "compile)")  # fmt: skip
 
     out["action_bounds"] = [np.asarray(b).tolist() for b in env.action_bounds()]
-    solve = lambda x0, limits: trajopt.solve(env, task.cost, x0, config=config, limits=limits)
-    program = jax.jit(lambda x0: solve(x0, args.limits))
+
+    def solve(x0, limits, initial):
+        return trajopt.solve(env, task.cost, x0, config=config, limits=limits, initial=initial)
+
+    program = jax.jit(lambda x0: solve(x0, args.limits, args.initial))
     result, seconds, compile_s = timed(program, X0)
     out["ilqr"] = record(result, seconds, compile_s)
     out["ilqr"]["control_limited"] = args.limits
-    show(f"iLQR from zero actions{'' if args.limits else ', no control limits'}", out["ilqr"])
+    out["ilqr"]["initial"] = args.initial
+    start = {"zeros": "zero actions", "goal_lqr": "the goal's LQR", "best": "the better of both"}
+    label = f"iLQR from {start[args.initial]}{'' if args.limits else ', no control limits'}"
+    show(label, out["ilqr"])
+    if args.initial != "zeros" and args.zeros_row:  # the same solver from zero actions
+        zeros, seconds, compile_s = timed(jax.jit(lambda x0: solve(x0, args.limits, "zeros")), X0)
+        out["ilqr_zeros"] = record(zeros, seconds, compile_s)
+        show("iLQR from zero actions", out["ilqr_zeros"])
     if args.limits and args.unlimited_row:  # the same problem without the box, for comparison
-        unlimited, seconds, compile_s = timed(jax.jit(lambda x0: solve(x0, False)), X0)
+        unlimited, seconds, compile_s = timed(
+            jax.jit(lambda x0: solve(x0, False, args.initial)), X0
+        )
         out["ilqr_unlimited"] = record(unlimited, seconds, compile_s)
         out["ilqr_unlimited"]["max_abs_action"] = float(jnp.abs(unlimited.U).max())
         show("iLQR without control limits", out["ilqr_unlimited"])
@@ -421,6 +433,15 @@ def main(argv=None) -> int:
     )
     parser.add_argument(
         "--unlimited-row", action="store_true", help="also iLQR without control limits"
+    )
+    parser.add_argument(
+        "--initial",
+        choices=("zeros", "goal_lqr", "best"),
+        default="zeros",
+        help="iLQR's initial actions (trajopt.solve's initial)",
+    )
+    parser.add_argument(
+        "--zeros-row", action="store_true", help="with --initial: also iLQR from zero actions"
     )
     parser.add_argument(
         "--hard", action="store_true", help="pendulum: tilts ±0.15 rad, cart 0.1–0.2 m off"

@@ -7,7 +7,15 @@ import pytest
 from lqr_problems import random_problem
 from test_lqr import riccati_numpy
 
-from diffgcl.control.ilqr import CONVERGED, ILQRConfig, backward_pass, ilqr, ilqr_controller
+from diffgcl.control.ilqr import (
+    CONVERGED,
+    ILQRConfig,
+    backward_pass,
+    cost_minimiser,
+    goal_lqr_actions,
+    ilqr,
+    ilqr_controller,
+)
 from diffgcl.sim.rollout import rollout_controller
 
 
@@ -41,12 +49,10 @@ def _lq_problem(seed=1, T=8):
     return A, B, c, quad, np.asarray(x0.mean), step, cost
 
 
-def test_lq_problem_equals_riccati_solution():
-    """On a linear-quadratic problem iLQR's solution is the Riccati controller's rollout, its
-    final gains are the Riccati gains, and it gets there in one accepted Newton step."""
-    T = 8
-    A, B, c, quad, x0, step, cost = _lq_problem(T=T)
+def _riccati_rollout(A, B, c, quad, x0):
+    """The optimal actions of the LQ problem by the NumPy Riccati recursion -> (U [T, dU], K)."""
     n = np.asarray
+    T = n(quad.l_u).shape[0] - 1
     tile = lambda a: np.broadcast_to(a, (T, *a.shape)).copy()
     K_ref, k_ref, _ = riccati_numpy(
         tile(A), tile(B), tile(c), n(quad.l_xx[:-1]), n(quad.l_uu[:-1]), n(quad.l_ux[:-1]),
@@ -56,8 +62,16 @@ def test_lq_problem_equals_riccati_solution():
     for t in range(T):
         U_ref.append(K_ref[t] @ x + k_ref[t])
         x = A @ x + B @ U_ref[-1] + c
-    U_ref = np.stack(U_ref)
+    return np.stack(U_ref), K_ref
 
+
+def test_lq_problem_equals_riccati_solution():
+    """On a linear-quadratic problem iLQR's solution is the Riccati controller's rollout, its
+    final gains are the Riccati gains, and it gets there in one accepted Newton step."""
+    T = 8
+    A, B, c, quad, x0, step, cost = _lq_problem(T=T)
+    n = np.asarray
+    U_ref, K_ref = _riccati_rollout(A, B, c, quad, x0)
     result = jax.jit(lambda x0: ilqr(step, cost, x0, jnp.zeros((T, 2))))(jnp.asarray(x0))
     assert int(result.status) == CONVERGED
     np.testing.assert_allclose(result.U, U_ref, rtol=0, atol=1e-9)
@@ -78,6 +92,25 @@ def test_lq_problem_equals_riccati_solution():
 
     gn = ilqr(step, residual, jnp.asarray(x0), jnp.zeros((T, 2)), ILQRConfig(gauss_newton=True))
     np.testing.assert_allclose(gn.U, U_ref, rtol=0, atol=1e-9)
+
+
+def test_goal_lqr_actions_of_an_lq_problem_are_its_optimum():
+    """Linear dynamics and a quadratic cost are their own expansion about any point, so the LQR
+    at the goal is the problem's Riccati solution, whatever the goal; the terminal cost's
+    minimiser is ``−l_xx⁻¹ l_x``."""
+    T = 8
+    A, B, c, quad, x0, step, cost = _lq_problem(T=T)
+    U_ref, _ = _riccati_rollout(A, B, c, quad, x0)
+    x_goal = cost_minimiser(cost, jnp.asarray(x0), 2, T)
+    l_xx, l_x = np.asarray(quad.l_xx[T]), np.asarray(quad.l_x[T])
+    np.testing.assert_allclose(x_goal, np.linalg.solve(l_xx, -l_x), rtol=1e-9, atol=1e-12)
+    for goal in (x_goal, jnp.asarray(x0) + 1.0):
+        U = goal_lqr_actions(step, cost, jnp.asarray(x0), goal, T, 2)
+        np.testing.assert_allclose(U, U_ref, rtol=0, atol=1e-9)
+    # With a box the rollout clips the LQR's actions.
+    limit = 0.4 * np.abs(U_ref).max()
+    U = goal_lqr_actions(step, cost, jnp.asarray(x0), x_goal, T, 2, u_min=-limit, u_max=limit)
+    assert float(jnp.abs(U).max()) == pytest.approx(limit)
 
 
 def _pendulum(dt=0.1, T=40):

@@ -10,7 +10,7 @@ from test_lqr import riccati_numpy
 from diffgcl import api
 from diffgcl.algorithms import trajopt
 from diffgcl.algorithms.gps import GPSConfig, make_gps
-from diffgcl.control.ilqr import CONVERGED, ILQRConfig
+from diffgcl.control.ilqr import CONVERGED, ILQRConfig, cost_minimiser, goal_lqr_actions
 from diffgcl.control.init import init_controller
 from diffgcl.dynamics.autodiff import linearize
 
@@ -45,8 +45,10 @@ def env(tmp_path_factory):
 
 def test_ilqr_through_mjx_equals_riccati(env):
     """The slider under Euler is linear in (x, u) (actions well inside the control range): iLQR
-    through mjx.step gives the Riccati solution of its autodiff linearisation."""
-    result = jax.jit(lambda x: trajopt.solve(env, cost, x))(env.initial_states())
+    through mjx.step gives the Riccati solution of its autodiff linearisation, from zero actions
+    and from the goal's LQR (``initial="best"`` runs both), and the goal's LQR is that solution
+    already."""
+    result = jax.jit(lambda x: trajopt.solve(env, cost, x, initial="best"))(env.initial_states())
     assert np.all(np.asarray(result.status) == CONVERGED)
     x0 = np.asarray(env.initial_states()[0])
     A, B = (np.asarray(a) for a in linearize(env.step, jnp.asarray(x0), jnp.zeros(1)))
@@ -64,6 +66,10 @@ def test_ilqr_through_mjx_equals_riccati(env):
     assert np.abs(np.asarray(U)).max() < 5.0  # the clamp is inactive: the dynamics are linear
     np.testing.assert_allclose(result.U[0], np.asarray(U), rtol=0, atol=1e-7)
     np.testing.assert_allclose(result.K[0], K, rtol=0, atol=1e-7)
+    goal = cost_minimiser(cost, jnp.asarray(x0), 1, T)
+    np.testing.assert_allclose(goal, [0.0, 0.0], atol=1e-12)
+    U_lqr = jax.jit(lambda x, g: goal_lqr_actions(env.step, cost, x, g, T, 1))(x0, goal)
+    np.testing.assert_allclose(U_lqr, np.asarray(U), rtol=0, atol=1e-7)
 
 
 def test_control_limits_come_from_ctrlrange(env):

@@ -29,7 +29,14 @@ import numpy as np
 from jax import lax
 
 from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams, GPSMetrics, GPSState, make_gps
-from diffgcl.control.ilqr import ILQRConfig, ILQRResult, ilqr, ilqr_controller
+from diffgcl.control.ilqr import (
+    ILQRConfig,
+    ILQRResult,
+    cost_minimiser,
+    goal_lqr_actions,
+    ilqr,
+    ilqr_controller,
+)
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey
 
 
@@ -46,6 +53,9 @@ def action_bounds(env: Env) -> tuple[np.ndarray, np.ndarray] | None:
     return lo, hi
 
 
+INITIAL_ACTIONS = ("zeros", "goal_lqr", "best")
+
+
 def solve(
     env: Env,
     cost: CostFn,
@@ -54,30 +64,66 @@ def solve(
     config: ILQRConfig | None = None,
     *,
     limits: bool = True,
+    initial: str = "zeros",
+    goal: Array | None = None,
 ) -> ILQRResult:
     """iLQR on ``env.step`` with ``cost`` from each start state ``x0: [C, dX]`` (pure; jit it).
 
     U_init: [T, dU] or [C, T, dU] initial actions (default zeros, ``T = env.horizon``).
     limits: control-limited iLQR on the env's :func:`action_bounds` where it has any (the
     simulator clamps actions beyond them, so an unconstrained solution would push where it has
-    no authority); False: unconstrained. Returns an :class:`~diffgcl.control.ilqr.ILQRResult`
-    with leading axis C.
+    no authority); False: unconstrained.
+    initial: where iLQR starts when ``U_init`` is None — ``"zeros"``; ``"goal_lqr"``, the
+    rollout of the LQR of the dynamics linearised at the goal
+    (:func:`~diffgcl.control.ilqr.goal_lqr_actions`: for balancing an unstable system, which
+    falls under zero actions); ``"best"``, both, keeping per start the lower final cost (one
+    program, twice the run time).
+    goal: [dX] or [C, dX], the state the LQR stabilises (default: where the terminal cost is
+    lowest, :func:`~diffgcl.control.ilqr.cost_minimiser` from each start).
+    Returns an :class:`~diffgcl.control.ilqr.ILQRResult` with leading axis C.
     """
     x0 = jnp.atleast_2d(x0)
     T, dU = env.horizon, env.dU
+    C = x0.shape[0]
     if x0.shape[-1] != env.dX:
         raise ValueError(f"trajopt.solve: x0 must be [C, {env.dX}], got {tuple(x0.shape)}")
-    U = jnp.zeros((T, dU), x0.dtype) if U_init is None else jnp.asarray(U_init, x0.dtype)
-    if U.shape[-2:] != (T, dU):
-        raise ValueError(f"trajopt.solve: U_init must be [T={T}, {dU}] or [C, T, {dU}], got "
-                         f"{tuple(U.shape)}")  # fmt: skip
-    U = jnp.broadcast_to(U, (x0.shape[0], T, dU))
+    if initial not in INITIAL_ACTIONS:
+        raise ValueError(f"trajopt.solve: initial must be one of {INITIAL_ACTIONS}, got "
+                         f"{initial!r}")  # fmt: skip
     config = ILQRConfig() if config is None else config
     box = action_bounds(env) if limits else None
     u_min, u_max = (None, None) if box is None else box
-    return jax.vmap(lambda x, u: ilqr(env.step, cost, x, u, config, u_min=u_min, u_max=u_max))(
-        x0, U
-    )
+    run = jax.vmap(lambda x, u: ilqr(env.step, cost, x, u, config, u_min=u_min, u_max=u_max))
+    if U_init is not None or initial == "zeros":
+        U = jnp.zeros((T, dU), x0.dtype) if U_init is None else jnp.asarray(U_init, x0.dtype)
+        if U.shape[-2:] != (T, dU):
+            raise ValueError(f"trajopt.solve: U_init must be [T={T}, {dU}] or [C, T, {dU}], got "
+                             f"{tuple(U.shape)}")  # fmt: skip
+        return run(x0, jnp.broadcast_to(U, (C, T, dU)))
+    true_cost = cost
+    if config.gauss_newton:
+        true_cost = lambda x, u, t: jnp.sum(cost(x, u, t) ** 2)
+    if goal is None:
+        goals = jax.vmap(lambda x: cost_minimiser(true_cost, x, dU, T))(x0)
+    else:
+        goals = jnp.broadcast_to(jnp.asarray(goal, x0.dtype), x0.shape)
+    lqr = jax.vmap(lambda x, g: goal_lqr_actions(env.step, true_cost, x, g, T, dU,
+                                                 u_min=u_min, u_max=u_max))  # fmt: skip
+    U_lqr = lqr(x0, goals)
+    if initial == "goal_lqr":
+        return run(x0, U_lqr)
+    U = jnp.stack([jnp.zeros_like(U_lqr), U_lqr])  # [2, C, T, dU]
+    results = jax.vmap(run, in_axes=(None, 0))(x0, U)  # fields [2, C, ...]
+    return _lowest_cost(results)[0]
+
+
+def _lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:
+    """Per start, the run of ``results`` (fields [R, C, ...]) with the lowest finite final cost
+    -> (ILQRResult [C], the index of that run [C])."""
+    costs = jnp.where(jnp.isfinite(results.cost), results.cost, jnp.inf)
+    best = jnp.argmin(costs, axis=0)  # [C]
+    pick = jax.vmap(lambda c, i: jax.tree.map(lambda a: a[i, c], results), (0, 0))
+    return pick(jnp.arange(costs.shape[1]), best), best
 
 
 def restart_actions(T: int, dU: int, scale: float, dtype=None) -> Array:
@@ -110,10 +156,8 @@ def solve_restarts(
     x0 = jnp.atleast_2d(x0)
     U = restart_actions(env.horizon, env.dU, scale, x0.dtype)
     results = jax.vmap(lambda u: solve(env, cost, x0, u, config))(U)  # fields [R, C, ...]
-    costs = jnp.where(jnp.isfinite(results.cost), results.cost, jnp.inf)
-    best = jnp.argmin(costs, axis=0)  # [C]
-    pick = jax.vmap(lambda c, i: jax.tree.map(lambda a: a[i, c], results), (0, 0))
-    return pick(jnp.arange(x0.shape[0]), best), best, results
+    kept, best = _lowest_cost(results)
+    return kept, best, results
 
 
 def ilqr_controllers(
@@ -126,14 +170,16 @@ def ilqr_controllers(
     temperature: float | Array = 1.0,
     U_init: Array | None = None,
     restarts: bool = False,
+    initial: str = "zeros",
 ) -> tuple[LinearGaussianController, ILQRResult]:
-    """iLQR from every start state (``restarts``: the best of :func:`solve_restarts`) and the
-    solutions as controllers (fields [C, T, ...]); see
-    :func:`diffgcl.control.ilqr.ilqr_controller` for ``init_var`` and ``temperature``."""
+    """iLQR from every start state (``restarts``: the best of :func:`solve_restarts`; else
+    :func:`solve` from ``U_init`` or ``initial``) and the solutions as controllers (fields [C,
+    T, ...]); see :func:`diffgcl.control.ilqr.ilqr_controller` for ``init_var`` and
+    ``temperature``."""
     if restarts:
         result = solve_restarts(env, cost, x0, config)[0]
     else:
-        result = solve(env, cost, x0, U_init, config)
+        result = solve(env, cost, x0, U_init, config, initial=initial)
     ctrl = jax.vmap(lambda r: ilqr_controller(r, init_var=init_var, temperature=temperature))(
         result
     )

@@ -139,6 +139,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument("--noise-var", type=float, default=0.01, help="demos' mean action variance")
     g.add_argument("--temperature", type=float, default=None, help="instead: Σ = T·(Q_uu)⁻¹")
     g.add_argument("--gps-iterations", type=int, default=0, help="GPS refinement of iLQR")
+    g.add_argument(
+        "--initial",
+        choices=("zeros", "goal_lqr", "best"),
+        default="zeros",
+        help="iLQR's initial actions: zeros, the goal's LQR (for balancing), the better of both",
+    )
 
 
 def mjcf_demos_command(args) -> int:
@@ -181,6 +187,7 @@ def mjcf_demos_command(args) -> int:
         gps_iterations=args.gps_iterations,
         seed=args.seed,
         path=args.out,
+        initial=args.initial,
     )
     first = {e["condition"]: e for e in reversed(demos.episodes)}
     for c in range(C):

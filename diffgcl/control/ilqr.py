@@ -53,6 +53,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import jax
 import jax.numpy as jnp
 from flax import struct
 from jax import lax
@@ -60,7 +61,12 @@ from jax import lax
 from diffgcl import linalg
 from diffgcl.control.box_qp import box_qp
 from diffgcl.control.init import with_mean_variance
-from diffgcl.costs.expansion import expand_cost, expand_residual_cost, trajectory_cost
+from diffgcl.costs.expansion import (
+    expand_cost,
+    expand_residual_cost,
+    shift_expansion,
+    trajectory_cost,
+)
 from diffgcl.dynamics.autodiff import linearize_trajectory
 from diffgcl.types import Array, CostFn, LinearGaussianController, QuadraticCost, make_controller
 
@@ -450,6 +456,79 @@ def ilqr(
         status=s.status,
         cost_history=s.history,
     )
+
+
+def cost_minimiser(
+    cost: CostFn, x_init: Array, dU: int, t: int | Array, iterations: int = 20
+) -> Array:
+    """The state where ``c(x, 0, t)`` is lowest, by regularised Newton from ``x_init: [dX]``
+    (``x ← x − (H + εI)⁻¹∇c``, ``ε = 10⁻⁶·(1 + max|diag H|)``; a step whose ``H + εI`` is not
+    positive definite is not taken): for a quadratic cost its goal after one step, with the
+    coordinates the cost ignores left at ``x_init``'s."""
+    u = jnp.zeros((dU,), x_init.dtype)
+    f = lambda x: cost(x, u, t)
+    eye = jnp.eye(x_init.shape[-1], dtype=x_init.dtype)
+
+    def newton(x, _):
+        g = jax.grad(f)(x)
+        H = linalg.symmetrise(jax.hessian(f)(x))
+        H = H + 1e-6 * (1.0 + jnp.max(jnp.abs(jnp.diagonal(H)))) * eye
+        L = linalg.cholesky(H)
+        pd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)
+        step = linalg.cho_solve(jnp.where(pd, L, eye), g)
+        return jnp.where(pd & jnp.all(jnp.isfinite(step)), x - step, x), None
+
+    return lax.scan(newton, x_init, None, length=iterations)[0]
+
+
+def goal_lqr_actions(
+    step: StepFn,
+    cost: CostFn,
+    x0: Array,
+    x_goal: Array,
+    T: int,
+    dU: int,
+    *,
+    u_min: Array | None = None,
+    u_max: Array | None = None,
+) -> Array:
+    """Initial actions [T, dU] for :func:`ilqr`: the rollout from ``x0`` of the time-varying
+    LQR of the dynamics linearised at the goal ``(x_goal, u = 0)`` (an affine model where the
+    goal is not an equilibrium) and the cost expanded there, its actions clipped to the box.
+
+    Why: iLQR linearises along its current trajectory. From zero actions an unstable system
+    (gymnasium's double pendulum) falls at once, and the Newton steps taken along a fallen
+    trajectory find local optima that swing instead of balancing. The LQR of the upright
+    linearisation is the textbook stabiliser; where it catches the system iLQR starts next to
+    the answer. Only meaningful where the goal is an equilibrium at ``u ≈ 0`` (balancing,
+    holding a pose); elsewhere it is one more start to try (:func:`diffgcl.algorithms.trajopt.solve`
+    keeps the cheaper result).
+    """
+    dX = x0.shape[-1]
+    dtype = x0.dtype
+    U_zero = jnp.zeros((T, dU), dtype)
+    A, B = linearize_trajectory(step, jnp.stack([x_goal, x_goal]), U_zero[:1])
+    A, B = jnp.broadcast_to(A[0], (T, dX, dX)), jnp.broadcast_to(B[0], (T, dX, dU))
+    # The affine model x' − g = A(x − g) + B u + d, d = f(g, 0) − g (zero at an equilibrium);
+    # its free response from g is the trajectory the backward pass's deviations are about.
+    drift = step(x_goal, U_zero[0]) - x_goal
+
+    def free(x, _):
+        return x_goal + A[0] @ (x - x_goal) + drift, x
+
+    x_T, X_ref = lax.scan(free, x_goal, None, length=T)
+    X_ref = jnp.concatenate([X_ref, x_T[None]])
+    X_goal = jnp.broadcast_to(x_goal, (T + 1, dX))
+    quad = shift_expansion(expand_cost(cost, X_goal, U_zero), X_goal, U_zero, X_ref, U_zero)
+    back = backward_pass(A, B, quad, jnp.zeros((), dtype))
+    bounds = None
+    if u_min is not None or u_max is not None:
+        lo = -jnp.inf if u_min is None else u_min
+        hi = jnp.inf if u_max is None else u_max
+        bounds = tuple(jnp.broadcast_to(jnp.asarray(b, dtype), (dU,)) for b in (lo, hi))
+    one = jnp.ones((), dtype)
+    _, U, _ = closed_loop_rollout(step, cost, x0, X_ref, U_zero, back.K, back.k, one, bounds)
+    return jnp.where(back.ok & jnp.all(jnp.isfinite(U)), U, U_zero)
 
 
 def ilqr_controller(
