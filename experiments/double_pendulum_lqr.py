@@ -19,7 +19,7 @@ import itertools
 import mujoco
 import numpy as np
 from scipy.linalg import solve_discrete_are
-from trajopt_gym import TASKS, double_success, gym_asset
+from trajopt_gym import DOUBLE_WEIGHTS, TASKS, double_success, gym_asset
 
 FRAME_SKIP = 5
 
@@ -69,7 +69,8 @@ def main(argv=None) -> int:
         ever |= np.asarray(solved, bool)
         if sum(solved) > best[0]:
             best = (sum(solved), (qx, qth, qv, r), solved)
-    task_solved = balanced(np.diag((1.0, 4.0, 4.0, 0.1, 0.1, 0.1)), 0.01 * np.eye(1))
+    qx, qth, qv, r = DOUBLE_WEIGHTS
+    task_solved = balanced(np.diag([qx, qth, qth, qv, qv, qv]), r * np.eye(1))
     print(f"LQR with the task cost's weights: {sum(task_solved)}/{len(X0)} {task_solved}")
     print(f"best of {len(grid)} weightings {best[1]} (q_x, q_θ, q_v, r): {best[0]}/{len(X0)} "
           f"{np.asarray(best[2]).astype(int).tolist()}")  # fmt: skip

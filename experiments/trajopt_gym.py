@@ -39,7 +39,8 @@ The tasks (user code: nothing in the library knows them):
 * inverted pendulum, T = 100 (4 s): ``½(x² + 4θ² + 0.1ẋ² + 0.1θ̇²) + 0.01·½u²``; success: gymnasium's
   healthy test |θ| ≤ 0.2 throughout, and |x| < 0.1 m, |θ| < 0.05 rad over the last 10 states.
   Starts: qpos, qvel U(−0.01, 0.01), θ scaled 3×.
-* inverted double pendulum, T = 100 (5 s): ``½(x² + 4θ₁² + 4θ₂² + 0.1‖q̇‖²) + 0.01·½u²``;
+* inverted double pendulum, T = 100 (5 s): ``½(x² + 4θ₁² + 4θ₂² + 0.1‖q̇‖²) + 0.01·½u²``
+  (``--double-weights`` for others);
   success: gymnasium's healthy test (tip height > 1 m) throughout, and |x| < 0.1 m, |θ₁|, |θ₂| <
   0.05 rad over the last 10 states. Starts: qpos U(−0.1, 0.1), qvel 0.1·N(0, 1), θ₁, θ₂ scaled
   3×.
@@ -50,6 +51,7 @@ A start counts as solved when the method's noise-free rollout passes the task's 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import time
 from dataclasses import dataclass
@@ -105,9 +107,21 @@ def pendulum_success(X):
     return healthy & jnp.all((jnp.abs(X[-10:, 0]) < 0.1) & (jnp.abs(X[-10:, 1]) < 0.05))
 
 
-def double_cost(x, u, t):
-    w = jnp.asarray([1.0, 4.0, 4.0, 0.1, 0.1, 0.1], x.dtype)
-    return 0.5 * jnp.sum(w * x * x) + 0.01 * 0.5 * u @ u
+DOUBLE_WEIGHTS = (1.0, 4.0, 0.1, 0.01)  # the cart, each hinge angle, every velocity, the action
+
+
+def double_pendulum_cost(weights=DOUBLE_WEIGHTS):
+    """``½(q_x x² + q_θ(θ₁² + θ₂²) + q_v‖q̇‖²) + r·½u²`` with ``weights = (q_x, q_θ, q_v, r)``."""
+    q_x, q_th, q_v, r = weights
+
+    def cost(x, u, t):
+        w = jnp.asarray([q_x, q_th, q_th, q_v, q_v, q_v], x.dtype)
+        return 0.5 * jnp.sum(w * x * x) + r * 0.5 * u @ u
+
+    return cost
+
+
+double_cost = double_pendulum_cost()
 
 
 def double_tip_height(x):
@@ -257,6 +271,8 @@ def run_task(name, task, args) -> dict:
             raise SystemExit("trajopt_gym: --hard is for the pendulum only")
         starts = pendulum_hard_starts
     X0 = starts(np.random.default_rng(args.seed), args.starts)
+    if name == "double_pendulum" and args.double_weights is not None:
+        task = dataclasses.replace(task, cost=double_pendulum_cost(args.double_weights))
     env = api.load_model(
         path,
         lapack_free=True,  # see make_mjcf_env: without it the vmapped programs can hang here
@@ -277,6 +293,8 @@ def run_task(name, task, args) -> dict:
         "starts": np.asarray(X0).tolist(),
         "seed": args.seed,
     }
+    if name == "double_pendulum":
+        out["weights"] = list(args.double_weights or DOUBLE_WEIGHTS)
     print(f"== {name}: {path.name}, dt {env.dt:g} s (frame skip {env.frame_skip}), T = {T}, "
           f"{C} starts")  # fmt: skip
 
@@ -445,6 +463,12 @@ def main(argv=None) -> int:
     )
     parser.add_argument(
         "--hard", action="store_true", help="pendulum: tilts ±0.15 rad, cart 0.1–0.2 m off"
+    )
+    parser.add_argument(
+        "--double-weights",
+        type=lambda v: tuple(float(w) for w in v.split(",")),
+        default=None,
+        help="the double pendulum's cost weights q_x,q_theta,q_v,r (default 1,4,0.1,0.01)",
     )
     parser.add_argument("--x64", action="store_true", help="float64 (default float32)")
     parser.add_argument("--json", type=Path, default=None)

@@ -439,5 +439,21 @@ def test_gps_can_start_from_the_demos_controller(slider):
             np.testing.assert_array_equal(np.asarray(ctrl.k), np.asarray(demos.controller.k))
             ratio = np.asarray(ctrl.cov) / np.asarray(demos.controller.cov)
             np.testing.assert_allclose(ratio, ratio.flat[0], rtol=1e-9)
+        assert not np.any(np.asarray(state.buffer.valid))  # filled by the first iteration
+    # zero_controller_samples: the zero controller's N samples per condition wait in the buffer,
+    # with that controller as their proposal; they are its rollouts from the conditions' starts.
+    config = tiny_config(
+        "v2", iterations=1, initial_controller="demos", zero_controller_samples=True
+    )
+    state = jax.jit(make_train(config, env).init)(key, demos)
+    buf = state.buffer
+    N = config.gps.num_samples
+    np.testing.assert_array_equal(np.asarray(buf.valid).sum(axis=1), N)
+    np.testing.assert_array_equal(np.asarray(buf.controller_valid).sum(axis=1), 1)
+    assert not np.any(np.asarray(buf.controllers.K)) and not np.any(np.asarray(buf.controllers.k))
+    X = np.asarray(buf.X)[np.asarray(buf.valid)].reshape(-1, N, *buf.X.shape[-2:])
+    np.testing.assert_allclose(
+        X[:, :, 0], np.broadcast_to(env.initial_states()[:, None], X[:, :, 0].shape)
+    )
     with pytest.raises(ValueError, match="initial_controller"):
         tiny_config("v2", initial_controller="ilqr")

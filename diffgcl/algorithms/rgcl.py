@@ -149,7 +149,11 @@ class RGCLConfig:
     rGCL); ``"demos"``: the demos' own fitted controller per condition (``DemoBatch.controller``)
     with its covariance rescaled to a mean variance of init_var
     (:func:`diffgcl.control.init.with_mean_variance`), for tasks where a zero controller fails
-    at once (a pendulum falls before GPS's KL-bounded steps can catch it).
+    at once (a pendulum falls before GPS's KL-bounded steps can catch it);
+    zero_controller_samples: also put N samples of the zero controller (``init_var``) per
+    condition in the fusion buffer at the start, with their proposal, so that the partition
+    function sees trajectories that fail even when GPS starts from the demos and draws only
+    samples near them (they leave the buffer after ``buffer_controllers`` iterations).
     """
 
     schedule: str = "v2"
@@ -173,6 +177,7 @@ class RGCLConfig:
     temperature_start: int = 0
     temperature_ramp: int = 0
     initial_controller: str = "zero"
+    zero_controller_samples: bool = False
 
     def __post_init__(self):
         if self.schedule not in SCHEDULES:
@@ -568,6 +573,11 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         Kc = config.buffer_controllers
         empty = init_buffer(N * Kc, Kc, demos.U.shape[-2], dX, dU, dtype)
         buffer = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, *a.shape)), empty)
+        if config.zero_controller_samples:
+            key_zero, key_samples = jax.random.split(key_samples)
+            zero = phases.init(key_zero, gps_hp)
+            sims = phases.simulate(sim, phases.draw(zero, key_zero), jacobians=False)
+            buffer = store(buffer, demos, zero.controller, sims.X[:, :-1], sims.U[:, :-1])
         if pretrain and not pretrain_in_update:
             pre_buffer = buffer
             if config.pretrain_with_samples:

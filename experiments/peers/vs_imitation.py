@@ -85,6 +85,13 @@ TASKS = {
     ),
 }
 
+# diffgcl's settings on these tasks (edits of api.learn's default preset, before --diffgcl-set):
+# GPS starts from the demos' fitted controllers, since a zero controller lets a pendulum fall
+# before GPS's KL-bounded steps can catch it; and the zero controller's samples join the fusion
+# buffer, so that GCL's partition function sees trajectories that fail, not only samples near
+# the demos (without them the learned cost did not keep the pendulum up: docs/peers.md).
+DIFFGCL_SETTINGS = ("initial_controller=demos", "zero_controller_samples=True")
+
 # imitation's tuned hyperparameters for MuJoCo (benchmarking/example_{airl,gail}_seals_hopper_
 # best_hp_eval.json of the imitation repository): PPO generator, reward nets with RunningNorm.
 AIRL_SETTINGS = {
@@ -310,7 +317,7 @@ def run_diffgcl(task: PeerTask, demo_file: Path, train, held_out, args) -> dict:
         policy=True,
         seeds=(0,),
         iterations=args.diffgcl_iterations,
-        overrides=tuple(args.diffgcl_set),
+        overrides=DIFFGCL_SETTINGS + tuple(args.diffgcl_set),
         progress=False,
     )
     jax.block_until_ready(run.cost_params)
@@ -322,6 +329,7 @@ def run_diffgcl(task: PeerTask, demo_file: Path, train, held_out, args) -> dict:
     mean = jax.jit(lambda x: policy.mean_action(params, run.env.obs(x)))
     act = lambda obs: np.asarray(mean(jnp.asarray(to_state(obs)))) * scale
     out = {"wall_s": wall, **diffgcl_env_steps(run)}
+    out["settings"] = list(DIFFGCL_SETTINGS) + list(args.diffgcl_set)
     out["compile_s"] = run.result.compile_seconds  # the runner's own split of the wall time
     out["run_s"] = run.result.run_seconds
     out["train"] = judge(task, act, train)
@@ -525,7 +533,10 @@ def main(argv=None) -> int:
     parser.add_argument("--bc-epochs", type=int, default=100)
     parser.add_argument("--diffgcl-iterations", type=int, default=None, help="rGCL iterations")
     parser.add_argument(
-        "--diffgcl-set", action="append", default=[], help="config edit, e.g. gps.init_var=0.01"
+        "--diffgcl-set",
+        action="append",
+        default=[],
+        help="config edit after DIFFGCL_SETTINGS, e.g. gps.init_var=0.01",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/peers"))
