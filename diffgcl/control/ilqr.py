@@ -259,6 +259,15 @@ def closed_loop_rollout(
     return X_new, U_new, trajectory_cost(cost, X_new, U_new)
 
 
+def action_box(u_min, u_max, dU: int, dtype) -> tuple[Array, Array] | None:
+    """``(u_min, u_max)`` as [dU] arrays (a missing side ±inf), or None when both are None."""
+    if u_min is None and u_max is None:
+        return None
+    lo = -jnp.inf if u_min is None else u_min
+    hi = jnp.inf if u_max is None else u_max
+    return tuple(jnp.broadcast_to(jnp.asarray(b, dtype), (dU,)) for b in (lo, hi))
+
+
 @struct.dataclass
 class _Loop:
     X: Array
@@ -303,14 +312,12 @@ def ilqr(
     dX = x0.shape[-1]
     dtype = x0.dtype
     U_init = U_init.astype(dtype)
-    bounds = None
-    if u_min is not None or u_max is not None:
-        lo = -jnp.inf if u_min is None else u_min
-        hi = jnp.inf if u_max is None else u_max
-        bounds = tuple(jnp.broadcast_to(jnp.asarray(b, dtype), (dU,)) for b in (lo, hi))
+    bounds = action_box(u_min, u_max, dU, dtype)
+    if bounds is not None:
         U_init = jnp.clip(U_init, bounds[0], bounds[1])
         # The limits moved inwards by 1e-5 of the range (unchanged where a limit is infinite).
-        margin = jnp.where(jnp.isfinite(bounds[1] - bounds[0]), 1e-5 * (bounds[1] - bounds[0]), 0.0)
+        width = bounds[1] - bounds[0]
+        margin = jnp.where(jnp.isfinite(width), 1e-5 * width, 0.0)
         inner = (bounds[0] + margin, bounds[1] - margin)
     tol, armijo = config.tol, config.armijo
     n_hist = config.max_iterations + 1
@@ -521,11 +528,7 @@ def goal_lqr_actions(
     X_goal = jnp.broadcast_to(x_goal, (T + 1, dX))
     quad = shift_expansion(expand_cost(cost, X_goal, U_zero), X_goal, U_zero, X_ref, U_zero)
     back = backward_pass(A, B, quad, jnp.zeros((), dtype))
-    bounds = None
-    if u_min is not None or u_max is not None:
-        lo = -jnp.inf if u_min is None else u_min
-        hi = jnp.inf if u_max is None else u_max
-        bounds = tuple(jnp.broadcast_to(jnp.asarray(b, dtype), (dU,)) for b in (lo, hi))
+    bounds = action_box(u_min, u_max, dU, dtype)
     one = jnp.ones((), dtype)
     _, U, _ = closed_loop_rollout(step, cost, x0, X_ref, U_zero, back.K, back.k, one, bounds)
     return jnp.where(back.ok & jnp.all(jnp.isfinite(U)), U, U_zero)
