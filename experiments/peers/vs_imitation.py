@@ -355,8 +355,11 @@ def run_diffgcl(task: PeerTask, demo_file: Path, train, held_out, args) -> dict:
 # ---- 3. imitation, 4. PPO ------------------------------------------------------------------------
 
 
-def vec_env(task, seed, reward=None):
-    from stable_baselines3.common.vec_env import DummyVecEnv
+def vec_env(task, seed, reward=None, *, normalize_reward: bool = False):
+    """PPO's training env; ``normalize_reward``: stable-baselines3's ``VecNormalize`` on the
+    rewards only (a running estimate of the discounted return's scale, as rl-zoo's MuJoCo
+    settings use; the observations stay raw, so the judged policy sees what gymnasium gives)."""
+    from stable_baselines3.common.vec_env import DummyVecEnv, VecNormalize
 
     from diffgcl import gym as dgym
 
@@ -364,7 +367,8 @@ def vec_env(task, seed, reward=None):
         env = make_gym_env(task, seed, terminate=False)
         return env if reward is None else dgym.learned_cost_env(env, reward)
 
-    return DummyVecEnv([make])
+    venv = DummyVecEnv([make])
+    return VecNormalize(venv, norm_obs=False, norm_reward=True) if normalize_reward else venv
 
 
 def policy_kwargs():
@@ -464,7 +468,7 @@ def run_bc(task, trajectories, train, held_out, args) -> dict:
 def run_ppo(task, train, held_out, args, reward=None) -> dict:
     from stable_baselines3 import PPO
 
-    venv = vec_env(task, args.seed, reward)
+    venv = vec_env(task, args.seed, reward, normalize_reward=args.ppo_normalize_reward)
     t0 = time.perf_counter()
     model = PPO("MlpPolicy", venv, seed=args.seed, device="cpu", verbose=0)
     model.learn(args.steps)
@@ -537,6 +541,12 @@ def main(argv=None) -> int:
         action="append",
         default=[],
         help="config edit after DIFFGCL_SETTINGS, e.g. gps.init_var=0.01",
+    )
+    parser.add_argument(
+        "--ppo-normalize-reward",
+        action=argparse.BooleanOptionalAction,
+        default=False,
+        help="PPO (both rows) on VecNormalize'd rewards",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/peers"))
