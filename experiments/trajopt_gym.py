@@ -16,7 +16,8 @@ per start state:
 * **GPS from zero** (K = 0, k = 0, Σ = init_var·I; the same compiled program, another initial
   controller), the baseline; both also with KL step 1.0 (a traced hyperparameter);
 * **trajax** (``trajax.optimizers.ilqr``, google/trajax) on the same model, cost, horizon and
-  start states, if it is importable: iterations, final cost, seconds after compile. trajax
+  start states, from the same initial actions (zeros, or the goal's LQR with ``--initial
+  goal_lqr``), if it is importable: iterations, final cost, seconds after compile. trajax
   differentiates the dynamics in reverse mode, which ``mjx.step`` does not support once its
   constraint solver iterates (these models' joint limits are constraints), so it gets the same
   step function with a custom VJP that multiplies by the forward-mode Jacobian
@@ -213,23 +214,25 @@ def reverse_mode_step(step):
     return f
 
 
-def run_trajax(env, cost, X0, *, maxiter, tol):
-    """trajax's iLQR from each start (vmapped, jitted), or None when trajax is missing."""
+def run_trajax(env, cost, X0, *, maxiter, tol, U_init=None):
+    """trajax's iLQR from each start (vmapped, jitted; from ``U_init: [C, T, dU]``, default
+    zeros), or None when trajax is missing. trajax's ``ilqr`` has no control limits."""
     try:
         from trajax import optimizers
     except ImportError:
         return None
     step = reverse_mode_step(env.step)
     dynamics = lambda x, u, t: step(x, u)
-    U0 = jnp.zeros((env.horizon, env.dU), X0.dtype)
+    if U_init is None:
+        U_init = jnp.zeros((X0.shape[0], env.horizon, env.dU), X0.dtype)
 
-    def one(x0):
+    def one(x0, U0):
         X, U, obj, _, _, _, it = optimizers.ilqr(
             cost, dynamics, x0, U0, maxiter=maxiter, obj_step_threshold=tol
         )
         return X, U, obj, it
 
-    (X, U, obj, it), seconds, compile_s = timed(jax.jit(jax.vmap(one)), X0)
+    (X, U, obj, it), seconds, compile_s = timed(jax.jit(jax.vmap(one)), X0, U_init)
     return {
         "success": np.asarray(jax.vmap(env.success)(X)).tolist(),
         "cost": np.asarray(obj).tolist(),
@@ -350,7 +353,20 @@ def run_task(name, task, args) -> dict:
         out["ilqr_restarts"]["restart_costs"] = np.asarray(runs.cost).tolist()
         show(f"iLQR, best of {int(runs.cost.shape[0])} initial actions", out["ilqr_restarts"])
     if args.trajax:
-        tj = run_trajax(env, task.cost, X0, maxiter=args.max_iterations, tol=args.tol)
+        U_init = None  # trajax from iLQR's initial actions: zeros, or with goal_lqr the goal's LQR
+        if args.initial == "goal_lqr":
+            from diffgcl.control.ilqr import cost_minimiser, goal_lqr_actions
+
+            lo, hi = env.action_bounds()
+
+            def lqr(x):
+                goal = cost_minimiser(task.cost, x, env.dU, T)
+                return goal_lqr_actions(env.step, task.cost, x, goal, T, env.dU, u_min=lo, u_max=hi)
+
+            U_init = jax.jit(jax.vmap(lqr))(X0)
+        tj = run_trajax(
+            env, task.cost, X0, maxiter=args.max_iterations, tol=args.tol, U_init=U_init
+        )
         if tj is None:
             print("   trajax: not importable, skipped (see the module docstring to install it)")
             out["trajax"] = None

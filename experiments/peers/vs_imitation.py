@@ -19,7 +19,9 @@ task — gymnasium's ``InvertedPendulum-v5`` and ``Reacher-v5`` with a fixed tar
    tuned MuJoCo (seals Hopper) hyperparameters (:data:`AIRL_SETTINGS`, :data:`GAIL_SETTINGS`),
    a fixed budget of environment steps; imitation's BC.
 4. **the export**: PPO on diffgcl's learned cost (:func:`diffgcl.gym.learned_cost_env`) beside
-   PPO on gymnasium's true reward, the same budget and settings (stable-baselines3's defaults).
+   PPO on gymnasium's true reward, the same budget and settings (stable-baselines3's defaults,
+   rewards normalised by ``VecNormalize`` as rl-zoo does for MuJoCo: a learned cost's scale is
+   GCL's, not the task's).
 
 Every policy is judged in gymnasium itself, noise-free, from the training starts and from
 held-out starts: the task's success test on the states gymnasium visits, gymnasium's own episode
@@ -545,8 +547,8 @@ def main(argv=None) -> int:
     parser.add_argument(
         "--ppo-normalize-reward",
         action=argparse.BooleanOptionalAction,
-        default=False,
-        help="PPO (both rows) on VecNormalize'd rewards",
+        default=True,
+        help="PPO (both rows) on VecNormalize'd rewards (rl-zoo's MuJoCo setting)",
     )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", type=Path, default=Path("runs/peers"))
