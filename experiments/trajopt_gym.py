@@ -355,15 +355,7 @@ def run_task(name, task, args) -> dict:
     if args.trajax:
         U_init = None  # trajax from iLQR's initial actions: zeros, or with goal_lqr the goal's LQR
         if args.initial == "goal_lqr":
-            from diffgcl.control.ilqr import cost_minimiser, goal_lqr_actions
-
-            lo, hi = env.action_bounds()
-
-            def lqr(x):
-                goal = cost_minimiser(task.cost, x, env.dU, T)
-                return goal_lqr_actions(env.step, task.cost, x, goal, T, env.dU, u_min=lo, u_max=hi)
-
-            U_init = jax.jit(jax.vmap(lqr))(X0)
+            U_init = jax.jit(lambda x: trajopt.goal_lqr_starts(env, task.cost, x))(X0)
         tj = run_trajax(
             env, task.cost, X0, maxiter=args.max_iterations, tol=args.tol, U_init=U_init
         )

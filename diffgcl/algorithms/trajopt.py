@@ -36,6 +36,7 @@ from diffgcl.control.ilqr import (
     goal_lqr_actions,
     ilqr,
     ilqr_controller,
+    squared_residual,
 )
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey
 
@@ -100,21 +101,32 @@ def solve(
             raise ValueError(f"trajopt.solve: U_init must be [T={T}, {dU}] or [C, T, {dU}], got "
                              f"{tuple(U.shape)}")  # fmt: skip
         return run(x0, jnp.broadcast_to(U, (C, T, dU)))
-    true_cost = cost
-    if config.gauss_newton:
-        true_cost = lambda x, u, t: jnp.sum(cost(x, u, t) ** 2)
-    if goal is None:
-        goals = jax.vmap(lambda x: cost_minimiser(true_cost, x, dU, T))(x0)
-    else:
-        goals = jnp.broadcast_to(jnp.asarray(goal, x0.dtype), x0.shape)
-    lqr = jax.vmap(lambda x, g: goal_lqr_actions(env.step, true_cost, x, g, T, dU,
-                                                 u_min=u_min, u_max=u_max))  # fmt: skip
-    U_lqr = lqr(x0, goals)
+    true_cost = squared_residual(cost) if config.gauss_newton else cost
+    U_lqr = goal_lqr_starts(env, true_cost, x0, goal, limits=limits)
     if initial == "goal_lqr":
         return run(x0, U_lqr)
     U = jnp.stack([jnp.zeros_like(U_lqr), U_lqr])  # [2, C, T, dU]
     results = jax.vmap(run, in_axes=(None, 0))(x0, U)  # fields [2, C, ...]
     return _lowest_cost(results)[0]
+
+
+def goal_lqr_starts(
+    env: Env, cost: CostFn, x0: Array, goal: Array | None = None, *, limits: bool = True
+) -> Array:
+    """The initial actions [C, T, dU] of ``solve(..., initial="goal_lqr")`` from each start
+    ``x0: [C, dX]`` (:func:`~diffgcl.control.ilqr.goal_lqr_actions`; ``goal`` [dX] or [C, dX],
+    default the terminal cost's minimiser from each start; clipped to the env's
+    :func:`action_bounds` with ``limits``). ``cost`` is a cost, not a residual."""
+    x0 = jnp.atleast_2d(x0)
+    T, dU = env.horizon, env.dU
+    box = action_bounds(env) if limits else None
+    u_min, u_max = (None, None) if box is None else box
+    if goal is None:
+        goals = jax.vmap(lambda x: cost_minimiser(cost, x, dU, T))(x0)
+    else:
+        goals = jnp.broadcast_to(jnp.asarray(goal, x0.dtype), x0.shape)
+    lqr = lambda x, g: goal_lqr_actions(env.step, cost, x, g, T, dU, u_min=u_min, u_max=u_max)
+    return jax.vmap(lqr)(x0, goals)
 
 
 def _lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:

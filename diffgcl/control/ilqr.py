@@ -67,7 +67,7 @@ from diffgcl.costs.expansion import (
     shift_expansion,
     trajectory_cost,
 )
-from diffgcl.dynamics.autodiff import linearize_trajectory
+from diffgcl.dynamics.autodiff import linearize, linearize_trajectory
 from diffgcl.types import Array, CostFn, LinearGaussianController, QuadraticCost, make_controller
 
 StepFn = Callable[[Array, Array], Array]
@@ -259,6 +259,11 @@ def closed_loop_rollout(
     return X_new, U_new, trajectory_cost(cost, X_new, U_new)
 
 
+def squared_residual(residual: CostFn) -> CostFn:
+    """The cost ``c = ‖r(x, u, t)‖²`` of a residual (``ILQRConfig.gauss_newton``)."""
+    return lambda x, u, t: jnp.sum(residual(x, u, t) ** 2)
+
+
 def action_box(u_min, u_max, dU: int, dtype) -> tuple[Array, Array] | None:
     """``(u_min, u_max)`` as [dU] arrays (a missing side ±inf), or None when both are None."""
     if u_min is None and u_max is None:
@@ -323,8 +328,7 @@ def ilqr(
     n_hist = config.max_iterations + 1
     if config.gauss_newton:
         expand = lambda X, U: expand_residual_cost(cost, X, U)
-        total = lambda r: lambda x, u, t: jnp.sum(r(x, u, t) ** 2)
-        true_cost = total(cost)
+        true_cost = squared_residual(cost)
     else:
         expand = lambda X, U: expand_cost(cost, X, U)
         true_cost = cost
@@ -514,14 +518,14 @@ def goal_lqr_actions(
     dX = x0.shape[-1]
     dtype = x0.dtype
     U_zero = jnp.zeros((T, dU), dtype)
-    A, B = linearize_trajectory(step, jnp.stack([x_goal, x_goal]), U_zero[:1])
-    A, B = jnp.broadcast_to(A[0], (T, dX, dX)), jnp.broadcast_to(B[0], (T, dX, dU))
+    A_goal, B_goal = linearize(step, x_goal, U_zero[0])
+    A, B = jnp.broadcast_to(A_goal, (T, dX, dX)), jnp.broadcast_to(B_goal, (T, dX, dU))
     # The affine model x' − g = A(x − g) + B u + d, d = f(g, 0) − g (zero at an equilibrium);
     # its free response from g is the trajectory the backward pass's deviations are about.
     drift = step(x_goal, U_zero[0]) - x_goal
 
     def free(x, _):
-        return x_goal + A[0] @ (x - x_goal) + drift, x
+        return x_goal + A_goal @ (x - x_goal) + drift, x
 
     x_T, X_ref = lax.scan(free, x_goal, None, length=T)
     X_ref = jnp.concatenate([X_ref, x_T[None]])
