@@ -1,7 +1,13 @@
-"""Test-wide settings: float64 (references are compared in double precision) and the persistent
-compilation cache (each program with Jacobians through ``mjx.step`` costs seconds to compile)."""
+"""Test-wide settings: float64 (references are compared in double precision), the persistent
+compilation cache (each program with Jacobians through ``mjx.step`` costs seconds to compile) and
+XLA's quick-compile level (the tests' programs run for well under a second; the variable reaches
+every process a test starts: ``diffgcl.runtime.QUICK_COMPILE_ENV``)."""
 
-import jax
+import os
+
+os.environ.setdefault("DIFFGCL_QUICK_COMPILE", "1")
+
+import jax  # noqa: E402
 
 jax.config.update("jax_enable_x64", True)
 

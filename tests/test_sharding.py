@@ -5,6 +5,10 @@ import subprocess
 import sys
 import textwrap
 
+import pytest
+
+from diffgcl.runtime import FAST_COMPILE_FLAGS, QUICK_COMPILE_FLAGS
+
 SCRIPT = textwrap.dedent(
     """
     import jax, jax.numpy as jnp, numpy as np
@@ -77,6 +81,33 @@ def test_one_device_per_core_before_jax_starts():
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "OK --xla_force_host_platform_device_count=3" in out.stdout
+
+
+PREPARE_SCRIPT = textwrap.dedent(
+    """
+    import os
+    from diffgcl.runtime import prepare_process
+    prepare_process()
+    import jax
+    jax.devices()
+    print("FLAGS", os.environ["XLA_FLAGS"])
+    """
+)
+
+
+@pytest.mark.parametrize("quick", ["0", "1"])
+def test_prepare_process_adds_compile_flags_to_what_xla_flags_sets(quick):
+    """The emitter flag always, the optimisation level only with ``DIFFGCL_QUICK_COMPILE=1``,
+    both after the flags the caller set (a child given its own ``XLA_FLAGS`` keeps them)."""
+    env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
+    env["DIFFGCL_QUICK_COMPILE"] = quick
+    out = subprocess.run(
+        [sys.executable, "-c", PREPARE_SCRIPT], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    flags = out.stdout.split("FLAGS", 1)[1].split()
+    assert flags[:2] == ["--xla_force_host_platform_device_count=2", *FAST_COMPILE_FLAGS]
+    assert flags[2:] == (list(QUICK_COMPILE_FLAGS) if quick == "1" else [])
 
 
 def test_sharded_sampling_equals_single_device():
