@@ -226,10 +226,15 @@ def ilqr_expert_demos(
 # ---- part 2: the user of diffgcl (the ten lines of the API) -------------------------------------
 
 
-def learn_from_demos(task: Task, demo_file: Path, out: Path, *, seeds, iterations) -> dict:
+def learn_from_demos(
+    task: Task, demo_file: Path, out: Path, *, seeds, iterations, overrides=()
+) -> dict:
     env = api.load_model(task.mjcf, dt=task.dt, obs=task.obs, success=task.success, cost=task.cost)
     demos = api.load_demos(demo_file, env)
-    run = api.learn(env, demos, seeds=seeds, iterations=iterations, policy=True, progress=False)
+    run = api.learn(
+        env, demos, seeds=seeds, iterations=iterations, overrides=overrides, policy=True,
+        progress=False,
+    )  # fmt: skip
     report = run.report()
     run.save(out)
     # The user's own check of the global policy on start states the demos never saw.
@@ -257,6 +262,9 @@ def main(argv=None) -> int:
         help="the user's expert: api.expert_demos (iLQR, default) or GPS on the cost",
     )
     parser.add_argument("--expert-only", action="store_true", help="stop after the demos")
+    parser.add_argument(
+        "--set", action="append", default=[], help="rGCL config edit, e.g. gcl.n_steps=20"
+    )
     parser.add_argument(
         "--demo-noise-var", type=float, default=0.01, help="iLQR expert: demos' action variance"
     )
@@ -304,6 +312,7 @@ def main(argv=None) -> int:
             args.out / name / "run",
             seeds=list(range(n_seeds)),
             iterations=iterations,
+            overrides=args.set,
         )
         seconds = time.perf_counter() - t0
         reopt, policy = report["reoptimisation"], report["policy"]
@@ -317,7 +326,13 @@ def main(argv=None) -> int:
         results[name] = {"expert": expert, "rgcl": report, "seconds": seconds}
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        summary = {"fast": args.fast, "x64": args.x64, "expert": args.expert, "models": results}
+        summary = {
+            "fast": args.fast,
+            "x64": args.x64,
+            "expert": args.expert,
+            "overrides": args.set,
+            "models": results,
+        }
         args.json.write_text(json.dumps(summary, indent=1))
         print(f"wrote {args.json}")
     return 0

@@ -19,6 +19,12 @@ prepare_process()
 import pytest  # noqa: E402
 
 
+def pytest_collection_modifyitems(config, items):
+    """Tests marked ``long`` run first: started last, a test of minutes would leave the other
+    worker idle at the end of ``pytest -n 2``."""
+    items.sort(key=lambda item: item.get_closest_marker("long") is None)
+
+
 @pytest.fixture(scope="session")
 def slider():
     """The tiny slider task and its expert demos (``tiny_tasks.slider_task``), made once."""

@@ -258,6 +258,7 @@ def _check_arm_experiment(s: dict, schedules: tuple[str, ...]) -> None:
     assert s["compile_seconds"] > 0
 
 
+@pytest.mark.long
 def test_arm_experiment_fast(tmp_path):
     """The fast arm experiment, v2 only (the timed schedule) and without the fresh-process
     compile, so that the default suite stays within CI's time: figures sane, learning floor."""
