@@ -232,9 +232,14 @@ def learn_from_demos(
     env = api.load_model(task.mjcf, dt=task.dt, obs=task.obs, success=task.success, cost=task.cost)
     demos = api.load_demos(demo_file, env)
     run = api.learn(
-        env, demos, seeds=seeds, iterations=iterations, overrides=overrides, policy=True,
+        env,
+        demos,
+        seeds=seeds,
+        iterations=iterations,
+        overrides=overrides,
+        policy=True,
         progress=False,
-    )  # fmt: skip
+    )
     report = run.report()
     run.save(out)
     # The user's own check of the global policy on start states the demos never saw.

@@ -5,14 +5,13 @@ every process a test starts: ``diffgcl.runtime.QUICK_COMPILE_ENV``)."""
 
 import os
 
-os.environ.setdefault("DIFFGCL_QUICK_COMPILE", "1")
-
-import jax  # noqa: E402
+import jax
 
 jax.config.update("jax_enable_x64", True)
 
-from diffgcl.runtime import prepare_process  # noqa: E402
+from diffgcl.runtime import QUICK_COMPILE_ENV, prepare_process  # noqa: E402
 
+os.environ.setdefault(QUICK_COMPILE_ENV, "1")
 prepare_process()
 
 

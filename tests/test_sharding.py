@@ -7,7 +7,7 @@ import textwrap
 
 import pytest
 
-from diffgcl.runtime import FAST_COMPILE_FLAGS, QUICK_COMPILE_FLAGS
+from diffgcl.runtime import FAST_COMPILE_FLAGS, QUICK_COMPILE_ENV, QUICK_COMPILE_FLAGS
 
 SCRIPT = textwrap.dedent(
     """
@@ -100,7 +100,7 @@ def test_prepare_process_adds_compile_flags_to_what_xla_flags_sets(quick):
     """The emitter flag always, the optimisation level only with ``DIFFGCL_QUICK_COMPILE=1``,
     both after the flags the caller set (a child given its own ``XLA_FLAGS`` keeps them)."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
-    env["DIFFGCL_QUICK_COMPILE"] = quick
+    env[QUICK_COMPILE_ENV] = quick
     out = subprocess.run(
         [sys.executable, "-c", PREPARE_SCRIPT], env=env, capture_output=True, text=True, timeout=300
     )
