@@ -440,7 +440,7 @@ def learn(
     env: MJCFEnv,
     demos: DemoSet,
     *,
-    preset: str = "default",
+    preset: str = "mjcf",
     schedule: str | None = None,
     seeds: Sequence[int] = (0,),
     iterations: int | None = None,
@@ -449,9 +449,10 @@ def learn(
     progress: bool = True,
     out: str | os.PathLike | None = None,
 ) -> LearnedRun:
-    """Learn a cost (rGCL, ``preset``) and local controllers from ``demos`` on ``env``, and with
-    ``policy`` (True, or :class:`~diffgcl.algorithms.mdgps.PolicySettings`) a global policy on
-    the env's observations (MDGPS inside rGCL).
+    """Learn a cost (rGCL, ``preset``: by default ``"mjcf"``,
+    :func:`diffgcl.algorithms.presets.mjcf`) and local controllers from ``demos`` on ``env``,
+    and with ``policy`` (True, or :class:`~diffgcl.algorithms.mdgps.PolicySettings`) a global
+    policy on the env's observations (MDGPS inside rGCL).
 
     The env gets the demos' start states as conditions and their length as horizon
     (:func:`demo_conditions`); seeds run as one vmapped batch; ``overrides`` are

@@ -9,9 +9,9 @@ descriptions (``models/reacher.xml``, ``models/cartpole.xml``) — this script p
    ``api.expert_demos`` (iLQR from the task's start states, demos sampled about each solution);
    ``--expert gps``: GPS on that cost and demos from the best expert seed's controllers;
 2. **the user of diffgcl**: the ≤ 10-line path of :mod:`diffgcl.api` — load the model, load the
-   demos, learn the cost with rGCL's ``default`` preset and a global policy (MDGPS), roll the
-   policy out, save the run — with the success test and the true cost handed in for the report
-   only.
+   demos, learn the cost with the API's rGCL preset (``mjcf``; ``--preset``) and a global policy
+   (MDGPS), roll the policy out, save the run — with the success test and the true cost handed
+   in for the report only.
 
 Reported per model: the expert's and the demos' success, rGCL's success (the user's test, noise-
 free rollouts of the final controllers from every start state), re-optimisation (GPS from scratch
@@ -227,13 +227,14 @@ def ilqr_expert_demos(
 
 
 def learn_from_demos(
-    task: Task, demo_file: Path, out: Path, *, seeds, iterations, overrides=()
+    task: Task, demo_file: Path, out: Path, *, seeds, iterations, preset="mjcf", overrides=()
 ) -> dict:
     env = api.load_model(task.mjcf, dt=task.dt, obs=task.obs, success=task.success, cost=task.cost)
     demos = api.load_demos(demo_file, env)
     run = api.learn(
         env,
         demos,
+        preset=preset,
         seeds=seeds,
         iterations=iterations,
         overrides=overrides,
@@ -256,6 +257,9 @@ def main(argv=None) -> int:
     parser.add_argument("--fast", action="store_true", help="1 rGCL seed, short runs")
     parser.add_argument("--models", default="reacher,cartpole", help="comma-separated")
     parser.add_argument("--seeds", type=int, default=None, help="rGCL seeds (default 4; fast 1)")
+    parser.add_argument(
+        "--first-seed", type=int, default=0, help="rGCL seeds start here (held-out seeds: 4)"
+    )
     parser.add_argument("--iterations", type=int, default=None, help="rGCL iterations")
     parser.add_argument("--out", type=Path, default=Path("runs/any_mjcf"))
     parser.add_argument("--json", type=Path, default=None)
@@ -267,6 +271,7 @@ def main(argv=None) -> int:
         help="the user's expert: api.expert_demos (iLQR, default) or GPS on the cost",
     )
     parser.add_argument("--expert-only", action="store_true", help="stop after the demos")
+    parser.add_argument("--preset", default="mjcf", help="rGCL preset (api.learn's default)")
     parser.add_argument(
         "--set", action="append", default=[], help="rGCL config edit, e.g. gcl.n_steps=20"
     )
@@ -309,14 +314,16 @@ def main(argv=None) -> int:
         if args.expert_only:
             results[name] = {"expert": expert}
             continue
-        print(f"== {name}: rGCL (default preset) from the demos, seeds 0..{n_seeds - 1}")
+        seeds = list(range(args.first_seed, args.first_seed + n_seeds))
+        print(f"== {name}: rGCL from the demos, seeds {seeds[0]}..{seeds[-1]}")
         t0 = time.perf_counter()
         report = learn_from_demos(
             task,
             args.out / name / "demos.npz",
             args.out / name / "run",
-            seeds=list(range(n_seeds)),
+            seeds=seeds,
             iterations=iterations,
+            preset=args.preset,
             overrides=args.set,
         )
         seconds = time.perf_counter() - t0
@@ -335,6 +342,8 @@ def main(argv=None) -> int:
             "fast": args.fast,
             "x64": args.x64,
             "expert": args.expert,
+            "preset": args.preset,
+            "seeds": list(range(args.first_seed, args.first_seed + n_seeds)),
             "overrides": args.set,
             "models": results,
         }

@@ -211,6 +211,20 @@ def test_presets_and_overrides():
         with_overrides(d, ["gcl.nope=1"])
     with pytest.raises(ValueError, match="schedule"):
         get_preset("paper_v1", "v2")
+    # Edits of one dataclass apply together: this pair is valid only as a pair, in either order.
+    f = with_overrides(d, ["gcl.importance_weights=False", "gcl.demos_in_partition=False"])
+    assert not f.gcl.importance_weights and not f.gcl.demos_in_partition
+    assert with_overrides(d, ["gcl.n_steps=3", "gcl.n_steps=4"]).gcl.n_steps == 4  # last wins
+    with pytest.raises(ValueError, match="demos_in_partition"):
+        with_overrides(d, ["gcl.importance_weights=False"])
+    with pytest.raises(ValueError, match="also"):
+        with_overrides(d, ["gps=None", "gps.maxent=True"])
+    # The API's preset: the default with the feature-matching cost update, either schedule.
+    for schedule in ("v1", "v2"):
+        m, base = get_preset("mjcf", schedule), get_preset("default", schedule)
+        assert not m.gcl.importance_weights and not m.gcl.demos_in_partition
+        assert m.schedule == schedule and m.iterations == base.iterations
+        assert m.gps.init_var == 0.01 and m.network == base.network
 
 
 @pytest.mark.slow

@@ -67,6 +67,7 @@ def _policy_settings(args):
 def config_from_args(args):
     from diffgcl.algorithms.presets import get_preset, with_overrides
 
+    args.preset = args.preset or "default"
     config = get_preset(args.preset, getattr(args, "schedule", None))
     if (settings := _policy_settings(args)) is not None:
         import dataclasses
@@ -92,7 +93,11 @@ def _launch_or_join(args) -> int | None:
 
 
 def _add_common(p: argparse.ArgumentParser, seeds: int = 4) -> None:
-    p.add_argument("--preset", default="default", help="default, paper_v1 or paper_v2")
+    p.add_argument(
+        "--preset",
+        default=None,
+        help="default (the arm's), mjcf (--mjcf's default), paper_v1 or paper_v2",
+    )
     p.add_argument("--schedule", choices=("v1", "v2"), default=None, help="default preset: v1/v2")
     p.add_argument("--seeds", type=int, default=seeds)
     p.add_argument("--first-seed", type=int, default=0)
@@ -141,6 +146,7 @@ def train_mjcf_command(args) -> int:
     env = api.load_model(args.mjcf, dt=args.dt, obs=obs)
     demos = api.load_demos(args.demos, env)
     seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+    args.preset = args.preset or "mjcf"
     out = args.out or Path("runs") / f"{env.name}-{time.strftime('%Y%m%d-%H%M%S')}"
     print(f"rGCL ({args.preset}) on {env.mjcf_path}: {demos.num_episodes} demos, seeds {seeds}")
     run = api.learn(
