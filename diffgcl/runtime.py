@@ -22,6 +22,12 @@ also lowers XLA's backend optimisation level to 0 (:data:`QUICK_COMPILE_FLAGS`):
 8-seed rGCL batch compiled in 25 s instead of 36 s but ran in 4.4 s instead of 1.4 s, and the
 test suite took 15 min instead of 23 (``docs/compile.md``). Off by default: a training run of
 minutes loses more than it gains.
+
+jaxlib 0.10.2's XLA:CPU hands some fusions to its YNNPACK library by default; one of its transpose
+kernels crashes the process (SIGSEGV in ``slinky::fuse_contiguous_dims``, under
+``YnnFusionThunk``) in the USV's staged hull rollouts. :data:`CRASH_WORKAROUND_FLAGS` turns
+those fusions off (XLA's own kernels run instead, measured no slower to compile or run); importing
+:mod:`diffgcl` sets them when JAX has not started yet, and so does :func:`prepare_process`.
 """
 
 from __future__ import annotations
@@ -42,6 +48,7 @@ HOST_DEVICE_FLAG = "--xla_force_host_platform_device_count"
 FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
 QUICK_COMPILE_FLAGS = ("--xla_backend_optimization_level=0",)
 QUICK_COMPILE_ENV = "DIFFGCL_QUICK_COMPILE"
+CRASH_WORKAROUND_FLAGS = ("--xla_cpu_experimental_ynn_fusion_type=",)  # no YNNPACK fusions
 
 
 def _backends_started() -> bool:
@@ -123,12 +130,13 @@ def relax_garbage_collection() -> None:
 def prepare_process(cache_dir: str | os.PathLike | None = None) -> Path:
     """What every entry point (CLI, experiments, tests) sets before it traces anything: JAX's
     persistent compilation cache (:func:`enable_compilation_cache`, returns its directory),
-    :func:`relax_garbage_collection` and XLA's faster-compiling CPU emitters
-    (:data:`FAST_COMPILE_FLAGS`, and :data:`QUICK_COMPILE_FLAGS` where ``$DIFFGCL_QUICK_COMPILE``
-    is 1; only before JAX's first computation). The environment variable, unlike flags a caller
-    sets in ``XLA_FLAGS``, reaches every process an entry point starts, whatever ``XLA_FLAGS``
-    that process is given."""
+    :func:`relax_garbage_collection`, :data:`CRASH_WORKAROUND_FLAGS` and XLA's faster-compiling
+    CPU emitters (:data:`FAST_COMPILE_FLAGS`, and :data:`QUICK_COMPILE_FLAGS` where
+    ``$DIFFGCL_QUICK_COMPILE`` is 1; only before JAX's first computation). The environment
+    variable, unlike flags a caller sets in ``XLA_FLAGS``, reaches every process an entry point
+    starts, whatever ``XLA_FLAGS`` that process is given."""
     quick = os.environ.get(QUICK_COMPILE_ENV, "0") == "1"
+    add_xla_flags(CRASH_WORKAROUND_FLAGS)
     add_xla_flags(FAST_COMPILE_FLAGS + (QUICK_COMPILE_FLAGS if quick else ()))
     relax_garbage_collection()
     return enable_compilation_cache(cache_dir)

@@ -7,7 +7,12 @@ import textwrap
 
 import pytest
 
-from diffgcl.runtime import FAST_COMPILE_FLAGS, QUICK_COMPILE_ENV, QUICK_COMPILE_FLAGS
+from diffgcl.runtime import (
+    CRASH_WORKAROUND_FLAGS,
+    FAST_COMPILE_FLAGS,
+    QUICK_COMPILE_ENV,
+    QUICK_COMPILE_FLAGS,
+)
 
 SCRIPT = textwrap.dedent(
     """
@@ -97,8 +102,9 @@ PREPARE_SCRIPT = textwrap.dedent(
 
 @pytest.mark.parametrize("quick", ["0", "1"])
 def test_prepare_process_adds_compile_flags_to_what_xla_flags_sets(quick):
-    """The emitter flag always, the optimisation level only with ``DIFFGCL_QUICK_COMPILE=1``,
-    both after the flags the caller set (a child given its own ``XLA_FLAGS`` keeps them)."""
+    """The crash workaround and the emitter flag always, the optimisation level only with
+    ``DIFFGCL_QUICK_COMPILE=1``, after the flags the caller set (a child given its own
+    ``XLA_FLAGS`` keeps them)."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     env[QUICK_COMPILE_ENV] = quick
     out = subprocess.run(
@@ -106,8 +112,22 @@ def test_prepare_process_adds_compile_flags_to_what_xla_flags_sets(quick):
     )
     assert out.returncode == 0, out.stderr[-3000:]
     flags = out.stdout.split("FLAGS", 1)[1].split()
-    assert flags[:2] == ["--xla_force_host_platform_device_count=2", *FAST_COMPILE_FLAGS]
-    assert flags[2:] == (list(QUICK_COMPILE_FLAGS) if quick == "1" else [])
+    fixed = ["--xla_force_host_platform_device_count=2", *CRASH_WORKAROUND_FLAGS]
+    fixed += FAST_COMPILE_FLAGS
+    assert flags[: len(fixed)] == fixed
+    assert flags[len(fixed) :] == (list(QUICK_COMPILE_FLAGS) if quick == "1" else [])
+
+
+def test_importing_diffgcl_turns_off_the_crashing_fusions():
+    """A user's script that imports diffgcl (no entry point's prepare_process) gets the
+    workaround before JAX starts."""
+    script = "import os, diffgcl, jax; jax.devices(); print('FLAGS', os.environ['XLA_FLAGS'])"
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    out = subprocess.run(
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    assert out.stdout.split("FLAGS", 1)[1].split() == list(CRASH_WORKAROUND_FLAGS)
 
 
 def test_sharded_sampling_equals_single_device():
