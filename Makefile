@@ -21,10 +21,10 @@ demo: $(STAMP)
 	$(BIN)/python -m diffgcl.cli demo
 
 test: $(STAMP)
-	$(BIN)/python -m pytest -n 2 --dist loadgroup -m "not slow" tests
+	$(BIN)/python -m pytest -n 2 -m "not slow" tests
 
 test-slow: $(STAMP)
-	$(BIN)/python -m pytest -n 2 --dist loadgroup -m slow tests
+	$(BIN)/python -m pytest -n 2 -m slow tests
 
 lint: $(STAMP)
 	$(BIN)/ruff check .

@@ -32,10 +32,6 @@ from diffgcl.types import make_controller
 
 TOL = 1e-4
 
-# One worker runs every test here: each process's first Warp step compiles Warp's modules (~25 s
-# in a fresh kernel cache), which two workers would each pay (`pytest --dist loadgroup`).
-pytestmark = pytest.mark.xdist_group("warp")
-
 
 @pytest.fixture(scope="module")
 def warp():
