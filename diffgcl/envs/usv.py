@@ -258,10 +258,12 @@ class UsvEnv:
         largest cross-track excursion (m), collision, back on course at the end, returned to the
         course after the pass (:meth:`returned_to_course`), the side passed at the
         closest approach (+1: the boat is to the left of the pole, y above it, i.e. it swerved to
-        port; −1: to starboard) and success."""
+        port; −1: to starboard), success, and ``turned_back``: the heading more than 90° off
+        the course at some step (the boat turned round or circled; no demo does)."""
         clearance = jax.vmap(self.clearance)(X)
         k = jnp.argmin(clearance)
         psi = X[-1, hull_sim.IX_PSI]
+        heading = X[:, hull_sim.IX_PSI]
         side = jnp.sign(X[k, hull_sim.IX_PY] - X[k, hull_sim.IX_OBS_Y])
         return {
             "min_clearance": clearance[k],
@@ -273,6 +275,7 @@ class UsvEnv:
             "returned_to_course": self.returned_to_course(X),
             "side": side,
             "success": self.success(X),
+            "turned_back": jnp.any(jnp.cos(heading) < 0.0),
         }
 
     def cost_features(self, x: Array) -> Array:

@@ -157,6 +157,26 @@ def learned_cost_weights(network, params, names: tuple[str, ...]) -> dict:
     }
 
 
+def gcl_diagnostics(metrics) -> dict:
+    """Per rGCL iteration, mean over seeds (lists [iterations]): the cost update's effective sample
+    size of the partition's weights (``gcl_ess``), the learned trajectory cost (over the demos'
+    window) of the demos and of the iteration's GPS samples under the cost after that
+    iteration's update, and how much dearer the samples are (``sample_excess``; a cost that no
+    longer tells them apart has it near 0)."""
+    demo = np.asarray(metrics.demo_learned_cost, np.float64)  # [S, I, C]
+    samples = np.asarray(metrics.learned_cost, np.float64)  # [S, I, G, C]
+    demo_mean = demo.mean(axis=(0, 2))
+    sample_mean = samples.reshape(*samples.shape[:2], -1).mean(axis=(0, 2))
+    ess = np.asarray(metrics.gcl.ess, np.float64).reshape(demo.shape[0], demo.shape[1], -1)
+    return {
+        "gcl_ess": ess.mean(axis=(0, 2)).tolist(),
+        "demo_learned_cost": demo_mean.tolist(),
+        "sample_learned_cost": sample_mean.tolist(),
+        "sample_excess": (sample_mean - demo_mean).tolist(),
+        "cost_updated": np.asarray(metrics.cost_updated).reshape(demo.shape[0], -1).any(0).tolist(),
+    }
+
+
 def identify_hull(demos: DemoSet, config=None, truth=None) -> tuple[object, dict]:
     """The hull identified from ``demos`` (:func:`diffgcl.data.sysid.identify`) and a summary:
     the fitted values and, given the ``truth``, the largest relative error."""
@@ -301,6 +321,7 @@ def run_usv(
             "controllers_on_demo_starts": on_starts["controllers"],
             "policy_on_demo_starts": on_starts["policy"],
             "true_cost_per_iteration": np.asarray(metrics.gps.cost).mean((0, 2)).tolist(),
+            "learning": gcl_diagnostics(metrics),
             "warnings": {str(seed): a["warning"] for seed, a in kept.items() if a["warning"]},
             "attempts": {str(seed): r for seed, r in record.items()},
         }

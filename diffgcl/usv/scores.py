@@ -50,7 +50,8 @@ def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
     demos' median; the median path distance to the nearest demo (first T+1 states); the share of
     port passes beside the demos'; ``straight_side_share``: the share that pass on the side they
     would have passed on sailing straight on (:func:`straight_side`; about 0.5 for a side picked
-    at random), beside the demos'."""
+    at random), beside the demos'; ``turned_back_rate``: the heading more than 90° off the course
+    at some step (turning round, circling)."""
     X = np.asarray(X)
     T1 = demo_X.shape[1]
     m = trajectory_metrics(env, X)
@@ -65,6 +66,7 @@ def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
         "returned_in_window_rate": float(w["returned_to_course"].mean()),
         "demo_returned_in_window_rate": float(d["returned_to_course"].mean()),
         "success_rate": float(m["success"].mean()),
+        "turned_back_rate": float(m["turned_back"].mean()),
         "min_clearance_median_m": clearance,
         "demo_min_clearance_median_m": demo_clearance,
         "clearance_ratio_vs_demos": clearance / demo_clearance,
