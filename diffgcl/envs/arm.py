@@ -17,6 +17,7 @@ import numpy as np
 from mujoco import mjx
 
 from diffgcl.checks import check_shape
+from diffgcl.sim import mjcf
 from diffgcl.sim.mjcf import load_mjcf, make_data, put_model, require, resolve_mjcf
 from diffgcl.types import Array, PRNGKey
 
@@ -50,12 +51,12 @@ class ArmEnv:
         check_shape("arm.step", "x", x, (self.dX,))
         check_shape("arm.step", "u", u, (self.dU,))
         d = self.data0.replace(qpos=x[:2], qvel=x[2:], ctrl=u)
-        d = mjx.step(self.model, d)
+        d = mjcf.step(self.model, d)
         return jnp.concatenate([d.qpos, d.qvel])
 
     def end_effector(self, x: Array) -> Array:
         """End-effector position [2] in the plane, from MJX forward kinematics."""
-        d = mjx.kinematics(self.model, self.data0.replace(qpos=x[:2]))
+        d = mjcf.kinematics(self.model, self.data0.replace(qpos=x[:2]))
         return d.site_xpos[0, :2]
 
     def obs(self, x: Array, key: PRNGKey | None = None) -> Array:

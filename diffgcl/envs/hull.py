@@ -26,6 +26,7 @@ from mujoco import mjx
 
 from diffgcl.checks import check_shape
 from diffgcl.sim import hull as hull_sim
+from diffgcl.sim import mjcf
 from diffgcl.sim.hull import HullParams
 from diffgcl.sim.mjcf import load_mjcf, make_data, put_model, resolve_mjcf
 from diffgcl.sim.sensors import SensorLayout, add_range_noise, range_readings
@@ -188,7 +189,7 @@ class HullEnv:
         check_shape("hull.ranges", "x", x, (self.dX,))
         mocap = self.data0.mocap_pos.at[0, :2].set(x[hull_sim.SL_OBS])
         d = self.data0.replace(qpos=x[hull_sim.SL_QPOS], mocap_pos=mocap)
-        d = mjx.kinematics(self.model, d)
+        d = mjcf.kinematics(self.model, d)
         return range_readings(self.model, d, self.layout)
 
     def obs(self, x: Array, key: PRNGKey | None = None) -> Array:

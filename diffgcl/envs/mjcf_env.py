@@ -50,6 +50,7 @@ from jax import lax
 from mujoco import mjx
 
 from diffgcl.checks import check_shape
+from diffgcl.sim import mjcf
 from diffgcl.sim.coordinates import ConfigurationChart, configuration_chart
 from diffgcl.sim.mjcf import MJCFError, load_mjcf, make_data, put_model_checked, resolve_mjcf
 from diffgcl.types import Array, CostFn, PRNGKey
@@ -139,9 +140,9 @@ class MJCFEnv:
         check_shape(f"{self.name}.step", "u", u, (self.dU,))
         d = self._data(x, self.ctrl_from_action(u))
         if self.frame_skip == 1:
-            d = mjx.step(self.model, d)
+            d = mjcf.step(self.model, d)
         else:
-            d = lax.fori_loop(0, self.frame_skip, lambda _, d: mjx.step(self.model, d), d)
+            d = lax.fori_loop(0, self.frame_skip, lambda _, d: mjcf.step(self.model, d), d)
         return self._state(d)
 
     def obs(self, x: Array, key: PRNGKey | None = None) -> Array:
@@ -152,9 +153,9 @@ class MJCFEnv:
         kinds = {kind for kind, _ in self.obs_parts}
         d = None
         if "sensor" in kinds:
-            d = mjx.forward(self.model, self._data(x, jnp.zeros(self.dU, x.dtype)))
+            d = mjcf.forward(self.model, self._data(x, jnp.zeros(self.dU, x.dtype)))
         elif kinds & {"site", "body"}:
-            d = mjx.kinematics(self.model, self._data(x, jnp.zeros(self.dU, x.dtype)))
+            d = mjcf.kinematics(self.model, self._data(x, jnp.zeros(self.dU, x.dtype)))
         out = []
         for kind, index in self.obs_parts:
             if kind == "state":

@@ -61,6 +61,17 @@ def put_model(model: mujoco.MjModel) -> mjx.Model:
     return jax.tree.map(cast, mx)
 
 
+# MJX's stages as jitted functions of (model, data), for every env's ``step`` and ``obs``. Inside
+# a traced program JAX then traces ``mjx.step`` once per model layout and reuses that jaxpr (and
+# its batched and forward-mode transforms) at every call site, instead of running MJX's Python
+# again at each: tracing the arm's rGCL v1 batch took 11.6 s instead of 21.4 s, with the same
+# compiled program and results (XLA inlines the nested call). The model is an argument, not a
+# closed-over constant, so envs that differ only in their start states or targets share it.
+step = jax.jit(mjx.step)
+forward = jax.jit(mjx.forward)
+kinematics = jax.jit(mjx.kinematics)
+
+
 def make_data(mx: mjx.Model) -> mjx.Data:
     """``mjx.make_data`` on this process's first device. MJX's default is ``jax.devices()[0]``,
     which in a multi-process run (:mod:`diffgcl.distributed`) belongs to process 0: the other
