@@ -112,6 +112,7 @@ from diffgcl.eval.controllers import demo_log_likelihood
 from diffgcl.policies.mdgps import PolicyState
 from diffgcl.sim.rollout import rollout_controller
 from diffgcl.sim.simulator import Simulator
+from diffgcl.tracing import batched_like
 from diffgcl.types import Array, Env, LinearDynamics, LinearGaussianController, PRNGKey
 
 SCHEDULES = ("v1", "v2")
@@ -748,7 +749,10 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
                 lambda: phases.fit(phases.simulate(sim, phases.draw(state.gps, key_gps)))
             ),
         )
-        carry = (state.gps, state.policy, state.buffer, empty, state.gps.controller)
+        # Batched from the start under vmap (diffgcl.tracing): ``empty`` is not, until the body.
+        carry = batched_like(
+            (state.gps, state.policy, state.buffer, empty, state.gps.controller), key
+        )
         (gps, policy, buffer, samples, proposal), (gps_metrics, lc, ll, sample_X, pm) = lax.scan(
             gps_iteration, carry, (jax.random.split(key_gps, G), jnp.arange(G) == 0)
         )
@@ -796,7 +800,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
 
     def train(key: PRNGKey, demos: DemoBatch, hparams: RGCLHyperparams | None = None):
         key_init, key_loop = split_key(key)
-        state = init(key_init, demos, hparams)
+        state = batched_like(init(key_init, demos, hparams), key)  # diffgcl.tracing
         return run(state, key_loop, demos, config.iterations)
 
     v2 = config.schedule == "v2"
