@@ -17,7 +17,10 @@ process of its own beside the main run (one run alone keeps about one of the two
 Figures (JSON): ``episodes`` (held-out rollouts judged), ``collision_rate``,
 ``return_to_course_rate``, ``clearance_ratio_vs_demos`` (median minimum clearance over the
 demos'), ``expert_cost_collision_rate``, ``bc_collision_rate``, ``bc_return_to_course_rate``,
-``radar_only_collision_rate``, ``wall_seconds``, and each method's full score.
+``radar_only_collision_rate``, ``wall_seconds``, and each method's full score; from situations of
+wider ranges than the demos' (pole radius 0.2–1.5 m, the boat's offset 1.5× the demos' range),
+``wider_collision_rate``, ``wider_return_to_course_rate``, ``wider_clearance_ratio_vs_demos`` and
+the same with ``expert_cost_`` and ``bc_`` in front.
 """
 
 from __future__ import annotations
@@ -115,6 +118,11 @@ def headline(main: dict, radar: dict | None) -> dict:
         "bc_collision_rate": main.get("bc", {}).get("collision_rate"),
         "bc_return_to_course_rate": main.get("bc", {}).get("return_to_course_rate"),
     }
+    for prefix, name in (("", "rgcl"), ("expert_cost_", "expert"), ("bc_", "bc")):
+        wide = main.get(name, {}).get("wider")
+        if wide is not None:
+            for key in ("collision_rate", "return_to_course_rate", "clearance_ratio_vs_demos"):
+                out[f"{prefix}wider_{key}"] = wide.get(key)
     if radar is not None:
         out["radar_only_collision_rate"] = radar.get("rgcl", {}).get("collision_rate")
         out["radar_only_return_to_course_rate"] = radar.get("rgcl", {}).get("return_to_course_rate")

@@ -282,6 +282,20 @@ def test_bag_demos_in_the_task_layout(tiny_bags):
     ahead = x0[:, hull_sim.IX_OBS_X] - x0[:, hull_sim.IX_PX]
     assert np.all((ahead >= ranges.distance[0] - 1e-9) & (ahead <= ranges.distance[1] + 1e-9))
     assert not np.any(np.all(np.isclose(x0[:, None], task_demos.X[None, :, 0]), axis=-1))
+    # The wider situations: radius 0.2-1.5 m, the offset range 1.5x the demos' about its centre,
+    # the rest as the demos'; drawn within those ranges.
+    wide = ranges.widened()
+    centre = 0.5 * (ranges.offset[0] + ranges.offset[1])
+    np.testing.assert_allclose(
+        np.subtract(wide.offset, centre), 1.5 * np.subtract(ranges.offset, centre)
+    )
+    assert wide.radius == (0.2, 1.5) and wide.distance == ranges.distance
+    assert wide.heading == ranges.heading and wide.speed == ranges.speed
+    xw = np.asarray(U.heldout_starts(env, wide, jax.random.PRNGKey(1), 64))
+    radius = xw[:, -1]
+    assert np.all((radius >= 0.2 - 1e-9) & (radius <= 1.5 + 1e-9)) and radius.max() > 1.0
+    offset = xw[:, hull_sim.IX_PY] - xw[:, hull_sim.IX_OBS_Y]
+    assert np.all((offset >= wide.offset[0] - 1e-6) & (offset <= wide.offset[1] + 1e-6))
 
 
 def test_unknown_set_is_a_one_line_error(tiny_bags):

@@ -50,6 +50,20 @@ class SituationRanges:
             radius=radius,
         )
 
+    def widened(self, radius=(0.2, 1.5), offset_scale: float = 1.5) -> SituationRanges:
+        """Situations the pipeline never tuned on: the pole's radius from ``radius`` and the
+        boat's lateral offset over ``offset_scale`` × the demos' range (about its centre); the
+        pole distance, heading and speed as the demos'."""
+        centre = 0.5 * (self.offset[0] + self.offset[1])
+        half = 0.5 * (self.offset[1] - self.offset[0]) * offset_scale
+        return SituationRanges(
+            distance=self.distance,
+            offset=(centre - half, centre + half),
+            heading=self.heading,
+            speed=self.speed,
+            radius=(float(radius[0]), float(radius[1])),
+        )
+
 
 def heldout_starts(env: UsvEnv, ranges: SituationRanges, key: PRNGKey, n: int) -> Array:
     """``n`` start states [n, 11]: each quantity drawn uniformly from its range independently

@@ -50,7 +50,10 @@ class UsvRunConfig:
     ``eval_extra`` steps (to judge the return); identify: fit the hull to the demos (else the
     nominal hull); sysid: its settings; retrain_warned: how many more times a training seed of
     ``rgcl`` is trained, each time with a new key, while its local controllers or its policy warn on
-    their own training starts (:func:`train_retrying_warned`; 0: warn only).
+    their own training starts (:func:`train_retrying_warned`; 0: warn only); wider: also judge
+    every policy from ``heldout`` situations of wider ranges than the demos' (pole radius
+    ``wider_radius``, the boat's offset ``wider_offset_scale`` × the demos' range;
+    :meth:`SituationRanges.widened`), reported apart (``<method>.wider``).
     """
 
     task: UsvTaskConfig = UsvTaskConfig()
@@ -66,6 +69,9 @@ class UsvRunConfig:
     identify: bool = True
     sysid: object = None
     retrain_warned: int = 1
+    wider: bool = True
+    wider_radius: tuple[float, float] = (0.2, 1.5)
+    wider_offset_scale: float = 1.5
 
     def __post_init__(self):
         unknown = set(self.methods) - set(METHODS)
@@ -155,6 +161,9 @@ def learned_cost_weights(network, params, names: tuple[str, ...]) -> dict:
         name: {"per_unit": w[:, k].tolist(), "log_w": theta[:, k].tolist()}
         for k, name in enumerate(names)
     }
+
+
+WIDER_FOLD = 77  # the wider situations' draw: fold_in(PRNGKey(heldout_seed), WIDER_FOLD)
 
 
 def gcl_diagnostics(metrics) -> dict:
@@ -250,6 +259,12 @@ def run_usv(
         heldout_starts(probe, ranges, jax.random.PRNGKey(config.heldout_seed), config.heldout)
     )
     env_true = dataclasses.replace(probe, x0=jnp.asarray(x0_heldout, probe.x0.dtype))
+    wider = None
+    if config.wider:
+        wide = ranges.widened(config.wider_radius, config.wider_offset_scale)
+        key_wide = jax.random.fold_in(jax.random.PRNGKey(config.heldout_seed), WIDER_FOLD)
+        x0_wide = np.asarray(heldout_starts(probe, wide, key_wide, config.heldout))
+        wider = (dataclasses.replace(probe, x0=jnp.asarray(x0_wide, probe.x0.dtype)), wide)
     demo_score = score_rollouts(env, task_demos.X, task_demos.X)
     summary["demos"] = {
         k: demo_score[k]
@@ -264,6 +279,8 @@ def run_usv(
     }
     summary["proximity_margins"] = list(env.proximity_margins)
     summary["evaluation_horizon"] = task.horizon + config.eval_extra
+    if wider is not None:
+        summary["wider_situations"] = dataclasses.asdict(wider[1])
     summary["training_horizon"] = task.training_horizon
     run = UsvRun(summary, env, env_true, task_demos, x0_heldout, {}, {}, train_env=train_env)
     eval_key = jax.random.PRNGKey(config.heldout_seed + 1)
@@ -277,6 +294,18 @@ def run_usv(
         run.tracks[name] = tracks
         score = score_rollouts(env_true, tracks.reshape(-1, *tracks.shape[2:]), task_demos.X)
         score["per_seed"] = per_seed_figures(env_true, tracks, score["demo_min_clearance_median_m"])
+        if wider is not None:
+            env_wide = wider[0]
+            wide_tracks = policy_tracks(
+                env_wide, policy, jax.tree.map(jnp.asarray, params), np.asarray(env_wide.x0), keys
+            )
+            wide = score_rollouts(
+                env_wide, wide_tracks.reshape(-1, *wide_tracks.shape[2:]), task_demos.X
+            )
+            wide["per_seed"] = per_seed_figures(
+                env_wide, wide_tracks, wide["demo_min_clearance_median_m"]
+            )
+            score["wider"] = wide
         summary[name] = {**summary.get(name, {}), **score}
         _say(
             verbose,
@@ -285,6 +314,13 @@ def run_usv(
             f" m (demos {score['demo_min_clearance_median_m']:.1f} m), path to demos "
             f"{score['path_distance_to_demos_median_m']:.1f} m",
         )
+        if wider is not None:
+            _say(
+                verbose,
+                f"  {name}, wider situations: collisions {wide['collision_rate']:.2f}, back on "
+                f"course {wide['return_to_course_rate']:.2f}, clearance "
+                f"{wide['clearance_ratio_vs_demos']:.2f}× the demos'",
+            )
 
     if "rgcl" in config.methods:
         from diffgcl.algorithms.rgcl import make_train
