@@ -44,6 +44,7 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import NoReturn
 
 import jax
@@ -256,6 +257,70 @@ def to_host(tree):
         return jax.tree.unflatten(treedef, [np.asarray(a) for a in leaves])
     except jax.errors.JaxRuntimeError as err:
         raise _lost(err, "gathering the results") from None
+
+
+# ---- compiled programs in every process's persistent cache --------------------------------------
+
+EXECUTABLES_DIR = "executables"  # under diffgcl's cache root, beside JAX's own cache
+
+
+def _executable_key(lowered) -> str:
+    """What a compiled program of this process depends on: the program (StableHLO text), the
+    JAX and jaxlib versions, the XLA flags, and this process's place and devices."""
+    import jaxlib
+
+    h = hashlib.sha256()
+    for part in (
+        lowered.as_text(),
+        jax.__version__,
+        jaxlib.__version__,
+        os.environ.get("XLA_FLAGS", ""),
+        f"process {jax.process_index()} of {jax.process_count()}",
+        repr([(d.id, d.platform, d.device_kind) for d in jax.devices()]),
+    ):
+        h.update(part.encode())
+        h.update(b"\0")
+    return h.hexdigest()
+
+
+def compile_program(lowered, cache_dir: str | os.PathLike | None = None):
+    """``lowered.compile()``, through a persistent cache that every process of a multi-process
+    run reads and writes (in a one-process run: ``lowered.compile()``, JAX's own cache).
+
+    JAX writes its persistent compilation cache from process 0 only, and on CPUs a program's key
+    there differs between processes (the host topology's fingerprint is part of it), so every
+    other process compiled every program afresh in every run: a two-process sweep's second run
+    still compiled its 27 s program in process 1. Here each process keeps its executables under
+    ``cache_dir`` (default ``<diffgcl cache>/executables``), keyed by the program, the versions,
+    the XLA flags and the process's devices, written with
+    :func:`jax.experimental.serialize_executable.serialize`. An unreadable entry is compiled
+    again and replaced. Load only caches you wrote: a serialized executable is code."""
+    if jax.process_count() == 1:
+        return lowered.compile()
+    from jax.experimental.serialize_executable import deserialize_and_load, serialize
+
+    from diffgcl.runtime import cache_root
+
+    directory = Path(cache_dir) if cache_dir is not None else cache_root() / EXECUTABLES_DIR
+    path = directory / f"{_executable_key(lowered)}.bin"
+    in_tree = jax.tree.structure(lowered.args_info)
+    if path.is_file():
+        try:
+            return deserialize_and_load(
+                path.read_bytes(), in_tree, lowered.out_tree, execution_devices=jax.devices()
+            )
+        except Exception as err:  # a partial or stale entry: compile and replace it
+            print(f"process {jax.process_index()}: {path.name} unreadable ({err}); compiling")
+    compiled = lowered.compile()
+    try:
+        payload, _, _ = serialize(compiled)
+        directory.mkdir(parents=True, exist_ok=True)
+        partial = path.with_suffix(f".{os.getpid()}.part")
+        partial.write_bytes(payload)
+        partial.replace(path)  # atomic: a reader never sees half a file
+    except (ValueError, NotImplementedError, OSError) as err:
+        print(f"process {jax.process_index()}: compiled program not cached ({err})")
+    return compiled
 
 
 def _digest(value) -> np.ndarray:

@@ -22,6 +22,7 @@ import numpy as np
 import pytest
 
 from diffgcl.distributed import (
+    EXECUTABLES_DIR,
     ProcessSettings,
     launch_local,
     process_settings,
@@ -255,11 +256,14 @@ def _assert_same_npz(one: Path, two: Path, rtol: float = 0.0) -> None:
 
 
 def test_two_processes_give_the_one_process_sweep_exactly(demos_file, tmp_path, capfd):
-    one, two = tmp_path / "one.npz", tmp_path / "two.npz"
+    """And every process keeps its compiled sweep program: run again with the same cache, each
+    loads its own (the files are read, not rewritten) and the outcome is the same."""
+    one, two, again = tmp_path / "one.npz", tmp_path / "two.npz", tmp_path / "again.npz"
     out = _one_process_two_devices("sweep", demos_file, str(one))
     assert "chunk 4 devices 2 processes 1" in out
+    env = dict(os.environ, DIFFGCL_CACHE=str(tmp_path / "cache"))  # starts empty
     command = [sys.executable, DRIVER, "sweep", demos_file, str(two)]
-    rc = launch_local(command, 2, devices_per_process=1, timeout_s=900)
+    rc = launch_local(command, 2, devices_per_process=1, timeout_s=900, env=env)
     out, err = capfd.readouterr()
     assert rc == 0, err[-3000:]
     assert "chunk 4 devices 2 processes 2" in out
@@ -268,6 +272,17 @@ def test_two_processes_give_the_one_process_sweep_exactly(demos_file, tmp_path, 
     success, distance = np.load(two)["arr_0"], np.load(two)["arr_1"]
     assert success.shape == (6,) and success.dtype == bool
     assert distance.dtype == np.float64 and len(set(distance.tolist())) == 6  # all runs differ
+
+    executables = sorted((tmp_path / "cache" / EXECUTABLES_DIR).glob("*.bin"))
+    assert len(executables) == 2, executables  # one sweep program per process
+    written = {p: p.stat().st_mtime_ns for p in executables}
+    command = [sys.executable, DRIVER, "sweep", demos_file, str(again)]
+    rc = launch_local(command, 2, devices_per_process=1, timeout_s=900, env=env)
+    out, err = capfd.readouterr()
+    assert rc == 0, err[-3000:]
+    assert "unreadable" not in out + err and "not cached" not in out + err
+    assert {p: p.stat().st_mtime_ns for p in executables} == written
+    _assert_same_npz(two, again)
 
 
 def test_a_killed_process_fails_the_run_in_bounded_time(demos_file, tmp_path, capfd):

@@ -55,7 +55,7 @@ from diffgcl.algorithms.rgcl import (
     make_train,
 )
 from diffgcl.algorithms.staged import StagedLoop, can_stage, staged_simulator
-from diffgcl.distributed import check_same_everywhere, is_leader, to_host
+from diffgcl.distributed import check_same_everywhere, compile_program, is_leader, to_host
 from diffgcl.runtime import CompileClock
 from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
 
@@ -227,7 +227,7 @@ def train_seeds(
             run_n = lambda s, k, d: rgcl.run(s, k, d, n)  # noqa: E731
             f = jax.jit(vmap_over_devices(run_n, in_axes=(0, 0, None)))
             t0 = time.perf_counter()
-            programs[n] = f.lower(state, key_loop, demos).compile()
+            programs[n] = compile_program(f.lower(state, key_loop, demos))
             compile_seconds += time.perf_counter() - t0
         return programs[n]
 
@@ -255,7 +255,7 @@ def train_seeds(
             print(f"resumed {ckpt} at iteration {done}/{total}")
     else:
         t0 = time.perf_counter()
-        compiled_init = init_fn.lower(key_init, demos, hparams).compile()
+        compiled_init = compile_program(init_fn.lower(key_init, demos, hparams))
         compile_seconds += time.perf_counter() - t0
         t0 = time.perf_counter()
         state = jax.block_until_ready(compiled_init(key_init, demos, hparams))

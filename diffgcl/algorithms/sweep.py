@@ -34,7 +34,7 @@ from diffgcl.algorithms.rgcl import (
     final_rollouts,
     make_train,
 )
-from diffgcl.distributed import barrier, check_same_everywhere, to_host
+from diffgcl.distributed import barrier, check_same_everywhere, compile_program, to_host
 from diffgcl.sim.sharding import batch_mesh, shard_batch, vmap_over_devices
 from diffgcl.types import Array
 
@@ -178,7 +178,7 @@ def run_sweep(
 
     t0 = time.perf_counter()
     k0, h0 = batch(0)
-    compiled = program.lower(k0, demos, h0).compile()
+    compiled = compile_program(program.lower(k0, demos, h0))
     compile_seconds = time.perf_counter() - t0
     barrier("sweep compiled")  # time the runs, not another process's compilation
     parts = []
