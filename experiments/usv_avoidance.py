@@ -179,7 +179,12 @@ def main(argv=None) -> int:
         "controllers or its policy warn on their own training starts "
         "(UsvRunConfig.retrain_warned; default 1, with --fast 0)",
     )
-    parser.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
+    parser.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        help="rGCL override a.b=value; cost=neural (or weighted, the default) picks the cost",
+    )
     parser.add_argument("--json", type=Path, default=None)
     parser.add_argument("--out", type=Path, default=None, help="plots (a new or own folder)")
     args = parser.parse_args(argv)
@@ -188,10 +193,8 @@ def main(argv=None) -> int:
 
     prepare_process()
 
-    from diffgcl.algorithms.presets import usv as usv_preset
-    from diffgcl.algorithms.presets import with_overrides
     from diffgcl.data.synth import true_params
-    from diffgcl.usv import builtin_demos, load_bag_demos, run_usv
+    from diffgcl.usv import builtin_demos, load_bag_demos, run_usv, usv_rgcl
 
     t0 = time.perf_counter()
     if args.bags is not None:
@@ -223,8 +226,8 @@ def main(argv=None) -> int:
         main_cfg, radar_cfg = (
             dataclasses.replace(c, retrain_warned=args.retrain) for c in (main_cfg, radar_cfg)
         )
-    if args.set:
-        rgcl = with_overrides(main_cfg.rgcl or usv_preset(), args.set)
+    if args.set:  # cost=neural|weighted picks the learned cost's form (diffgcl.usv.usv_rgcl)
+        rgcl = usv_rgcl(args.set, fast=args.fast)
         main_cfg = dataclasses.replace(main_cfg, rgcl=rgcl)
         radar_cfg = dataclasses.replace(radar_cfg, rgcl=rgcl)
     radar_label = "== radar-only variant: sets " + ", ".join(radar_cfg.task.sets)

@@ -304,3 +304,32 @@ def test_action_limit_residuals_are_the_expert_costs_limit_barrier():
     np.testing.assert_allclose(float(net.cost(params, x, U[2])), expected, rtol=1e-4)
     r = net.residual(params, x, U[2])
     np.testing.assert_allclose(float(r @ r), expected, rtol=1e-4)
+
+
+def test_neural_cost_is_zero_at_the_goal_and_reads_bounded_features():
+    """The neural form (``‖A (y(z) − y(z*))‖²`` on the task features): zero at the env's goal
+    state and at any state whose features equal the goal's (the pole further astern), positive
+    elsewhere, with a PSD Gauss-Newton expansion; the features stay bounded far from the pole."""
+    from diffgcl.algorithms.presets import usv_neural
+    from diffgcl.algorithms.rgcl import make_network
+
+    usv = make_usv_env(horizon=10)
+    net = make_network(usv_neural(), usv)
+    params = net.init(jax.random.PRNGKey(0))
+    params = params.replace(norm=net.fit_normaliser(usv.initial_states()))
+    goal = usv.cost_goal_state()
+    assert float(net.state_cost(params, goal)) == 0.0
+    further = goal.at[hull_sim.IX_OBS_X].set(-5000.0)  # saturated features: the same reading
+    assert float(net.state_cost(params, further)) < 1e-6
+    for x in usv.initial_states():
+        assert float(net.state_cost(params, x)) > 0.0
+    X = jnp.stack([usv.initial_states()[0]] * 3)
+    U = jnp.zeros((2, usv.dU), X.dtype)
+    quad = net.expand(params, X, U)
+    assert np.all(np.linalg.eigvalsh(np.asarray(quad.l_xx)) > -1e-9)
+    f_far = usv.cost_features(usv.start_state(jnp.array([1e5, 3.0]), 0.5, 10.0))
+    assert float(jnp.max(jnp.abs(f_far[:7]))) <= 60.0 + 1e-9
+    with pytest.raises(ValueError, match="goal_state"):
+        from diffgcl.costs.network import CostNetwork
+
+        CostNetwork(usv_neural().network, usv.dX, usv.dU)

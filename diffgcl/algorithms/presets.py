@@ -188,8 +188,10 @@ def mjcf(schedule: str = "v2") -> RGCLConfig:
     )
 
 
-def usv() -> RGCLConfig:
-    """The USV task (:mod:`diffgcl.usv`): rGCL v2 on the hull with normalised actions,
+def usv(cost: str = "weighted") -> RGCLConfig:
+    """The USV task (:mod:`diffgcl.usv`); ``cost="neural"`` gives :func:`usv_neural`'s cost.
+
+    rGCL v2 on the hull with normalised actions,
     a cost of learned non-negative weights on a sailor's squared residuals (cross-track and
     heading error, surge and progress speed errors, sway, yaw rate, depth inside the task's
     clearance margins, by default from the demos (5, 10, 15, 20 m on the built-in bags;
@@ -234,6 +236,10 @@ def usv() -> RGCLConfig:
     from diffgcl.policies.mdgps import SStepConfig
     from diffgcl.policies.network import PolicyConfig
 
+    if cost not in ("weighted", "neural"):
+        raise ValueError(f"usv preset: cost {cost!r}; 'weighted' or 'neural'")
+    if cost == "neural":
+        return usv_neural()
     return RGCLConfig(
         schedule="v2",
         iterations=14,
@@ -280,12 +286,37 @@ def usv() -> RGCLConfig:
     )
 
 
+def usv_neural() -> RGCLConfig:
+    """The USV task with a neural learned cost: :func:`usv` with the cost network
+    ``‖A (y(z) − y(z*))‖²``, ``y`` a 32 × 32 ReLU network on the task features
+    (:meth:`diffgcl.envs.usv.UsvEnv.cost_features`: the pole's saturated clearance and distance
+    ahead, proximity, bearing and closing speed; cross-track and heading error, speed made good;
+    the hull's speeds and jets), anchored at the task's goal (on the course at cruise speed, the
+    pole far astern; :meth:`~diffgcl.envs.usv.UsvEnv.cost_goal_state`), instead of weights on
+    chosen residuals with chosen clearance margins. Everything else as :func:`usv`."""
+    base = usv("weighted")
+    return dataclasses.replace(
+        base,
+        network=CostNetworkConfig(
+            form="neural",
+            features="env",
+            hidden=(32, 32),
+            n_features=32,
+            identity_init=True,
+            std_floor=1.0,
+            action_weight=0.3,
+            learn_action_weight=False,
+        ),
+    )
+
+
 PRESETS: dict[str, Callable[..., RGCLConfig]] = {
     "paper_v1": paper_v1,
     "paper_v2": paper_v2,
     "default": default,
     "mjcf": mjcf,
     "usv": usv,
+    "usv_neural": usv_neural,
 }
 
 

@@ -331,8 +331,8 @@ class RGCL(NamedTuple):
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
     """The cost network of ``config`` for ``env`` (parameters in the run's float dtype; with
     ``network.features == "env"`` it reads ``env.cost_features``, or ``env.cost_residuals`` for
-    the weighted form; an env with ``action_limit_residuals`` gets its actuator-limit barrier as
-    a fixed part of the cost)."""
+    the weighted form; the neural form is anchored at ``env.cost_goal_state()``; an env with
+    ``action_limit_residuals`` gets its actuator-limit barrier as a fixed part of the cost)."""
     dtype = jnp.asarray(env.initial_states()).dtype
     features = None
     if config.network.features == "env":
@@ -344,6 +344,14 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
             )
         features = getattr(env, name)
     limits = getattr(env, "action_limit_residuals", None)
+    goal = None
+    if config.network.form == "neural":
+        if not hasattr(env, "cost_goal_state"):
+            raise ValueError(
+                f"env {env.name!r} has no cost_goal_state for network.form='neural' (the state "
+                "where the cost is zero)"
+            )
+        goal = tuple(float(v) for v in np.asarray(env.cost_goal_state()))  # hashable
     return CostNetwork(
         config.network,
         env.dX,
@@ -351,6 +359,7 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
         param_dtype=dtype,
         feature_map=features,
         action_limits=limits,
+        goal_state=goal,
     )
 
 

@@ -40,9 +40,7 @@ def run_config(args):
     """The :class:`~diffgcl.usv.UsvRunConfig` that ``diffgcl usv`` runs for ``args``:
     the default scale, or :func:`~diffgcl.usv.fast_run_config` with ``--fast``; the
     options given on the command line (``--set`` included) override either."""
-    from diffgcl.algorithms.presets import usv as usv_preset
-    from diffgcl.algorithms.presets import with_overrides
-    from diffgcl.usv import METHODS, UsvRunConfig, UsvTaskConfig, fast_run_config
+    from diffgcl.usv import METHODS, UsvRunConfig, UsvTaskConfig, fast_run_config, usv_rgcl
 
     task = UsvTaskConfig(
         sets=tuple(args.sets.split(",")),
@@ -59,7 +57,7 @@ def run_config(args):
     return dataclasses.replace(
         base,
         task=task,
-        rgcl=with_overrides(base.rgcl if base.rgcl is not None else usv_preset(), args.set),
+        rgcl=usv_rgcl(args.set, fast=args.fast),
         methods=methods or METHODS,
         seeds=tuple(range(args.seed, args.seed + args.seeds)),
         heldout=args.heldout if args.heldout is not None else base.heldout,
@@ -131,7 +129,12 @@ def register(subparsers) -> None:
         "--heldout", type=int, default=None, help="held-out situations to judge (256, --fast 32)"
     )
     p.add_argument("--fast", action="store_true", help="few short episodes, few iterations")
-    p.add_argument("--set", action="append", default=[], help="rGCL override a.b=value")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        help="rGCL override a.b=value; cost=neural (or weighted, the default) picks the cost",
+    )
     p.add_argument("--out", type=Path, default=Path("runs/usv"))
     p.add_argument("--overwrite", action="store_true", help="write into a foreign folder")
     p.set_defaults(func=usv_command)

@@ -44,6 +44,13 @@ cost in features, so matching the demos' feature expectations is what the likeli
 every weight positive the cost keeps its valley where every residual is zero (e.g. back on the
 course line once the pole is passed) whatever the weights learn.
 
+Neural form (``CostNetworkConfig.form = "neural"``): the Gram form anchored at a goal,
+``s(x) = e^ρ ‖A (y(z(x)) − y(z*))‖²``, where ``z*`` is the normalised input of a goal state the
+task names (``CostNetwork.goal_state``; for the USV: on the course line at cruise speed, the pole
+far astern, :meth:`diffgcl.envs.usv.UsvEnv.cost_goal_state`). The network is as free as the Gram
+form's, but the cost is zero wherever the features equal the goal's, whatever GCL learns: the
+valley the weighted form gets from its residuals, without choosing the residuals.
+
 The network is flax linen; everything outside it (``CostParams``, :class:`CostNetwork`) is plain,
 so the cost is a pure function of an explicit parameter pytree that jit/vmap/scan carry around.
 """
@@ -99,7 +106,8 @@ class CostNetworkConfig:
     units); a_scale: standard deviation of the initial
     entries of ``A`` times ``sqrt(F)``; features: ``"state"`` — the network reads the raw
     state — or ``"env"`` — it reads the env's ``cost_features(x)`` (task features), or with the
-    weighted form its ``cost_residuals(x)``; form: ``"gram"`` (``‖A y + b‖²``, the paper's) or
+    weighted form its ``cost_residuals(x)``; form: ``"gram"`` (``‖A y + b‖²``, the paper's),
+    ``"neural"`` (``‖A (y − y*)‖²``, the Gram form anchored at the network's ``goal_state``) or
     ``"weighted"`` (learned non-negative weights on squared residuals; module docstring; hidden,
     n_features, identity_init, linear_skip, time_input and a_scale are unused).
     """
@@ -118,10 +126,11 @@ class CostNetworkConfig:
     form: str = "gram"
 
     def __post_init__(self):
-        if self.form not in ("gram", "weighted"):
+        if self.form not in ("gram", "neural", "weighted"):
             raise ValueError(
-                f"CostNetworkConfig: form {self.form!r}; 'gram' (‖A y + b‖²) or 'weighted' "
-                "(learned weights on squared residuals)"
+                f"CostNetworkConfig: form {self.form!r}; 'gram' (‖A y + b‖²), 'neural' "
+                "(‖A (y − y*)‖², zero at a goal) or 'weighted' (learned weights on squared "
+                "residuals)"
             )
         if self.features not in ("state", "env"):
             raise ValueError(
@@ -247,7 +256,8 @@ class CostNetwork:
     learned: the cost gains ``‖r_lim(u)‖²``. Where the env clips its commands, the linearised
     dynamics lose all authority beyond the limits, and without this term the LQR pushes the
     actions there for nothing (on the USV the controllers blew up within five iterations and
-    the boat circled with its nozzle hard over)."""
+    the boat circled with its nozzle hard over). ``goal_state``: the state ``x*`` (dX floats)
+    where the ``"neural"`` form's cost is zero (required by that form, unused by the others)."""
 
     config: CostNetworkConfig
     dX: int
@@ -255,6 +265,11 @@ class CostNetwork:
     param_dtype: object = jnp.float32
     feature_map: Callable[[Array], Array] | None = None
     action_limits: Callable[[Array], Array] | None = None
+    goal_state: tuple[float, ...] | None = None
+
+    def __post_init__(self):
+        if self.config.form == "neural" and self.goal_state is None:
+            raise ValueError("CostNetwork: form 'neural' needs a goal_state (the env's)")
 
     @property
     def state_input_dim(self) -> int:
@@ -388,6 +403,10 @@ class CostNetwork:
         if self.config.form == "weighted":
             return self.weighted_residual(params, x)
         z = self.network_input(params, x, t)
+        if self.config.form == "neural":
+            goal = self.network_input(params, jnp.asarray(self.goal_state, z.dtype), t)
+            y, y_goal = self._apply_features(params, z), self._apply_features(params, goal)
+            return params.net["A"] @ (y - y_goal)
         if self.is_affine:
             M, m = self.affine_residual_map(params)
             return M @ z + m

@@ -279,13 +279,17 @@ class UsvEnv:
         }
 
     def cost_features(self, x: Array) -> Array:
-        """Task features a sailor would use, for the learned cost: [16].
+        """Task features a sailor would use, for the learned cost (Gram and neural forms): [16].
 
-        clearance to the pole (m) and two soft proximity features exp(−clearance/ℓ) (ℓ = 5, 20
-        m); the pole's position in the hull frame (along, across; m) and its bearing (cos, sin);
-        the closing speed (m/s); cross-track error (m), sin ψ and 1 − cos ψ (heading error);
-        surge speed minus cruise, sway speed (m/s), yaw rate (rad/s); the lagged thrust and nozzle
-        as fractions of their ranges.
+        The pole: its clearance and its distance ahead along the hull's heading (m, each read
+        ``R tanh(d/R)`` with R = :data:`SATURATION_RANGE`, so that everything far reads alike), two
+        soft proximity features exp(−clearance/ℓ) (ℓ = 5, 20 m), its bearing in the hull frame
+        (cos, sin) and the closing speed (m/s); the course: cross-track error (m), sin ψ and
+        1 − cos ψ (heading error), the speed made good along the course minus cruise; the hull:
+        surge speed minus cruise, sway speed (m/s), yaw rate (rad/s), the lagged thrust and
+        nozzle as fractions of their ranges. Every feature but the cross-track error is bounded
+        on any trajectory, so that a network on them reads nothing it never saw far from the
+        data (a pole kilometres astern reads as one 60 m astern).
         """
         h = x[:IX_RADIUS]
         p = self.params
@@ -299,19 +303,20 @@ class UsvEnv:
         closing = (rel @ vel) / dist
         clearance = self.clearance(x)
         nu = hull_sim.body_velocity(h)
+        R = SATURATION_RANGE
         return jnp.stack(
             [
-                clearance,
+                R * jnp.tanh(clearance / R),
+                R * jnp.tanh(along / R),
                 jnp.exp(-jnp.maximum(clearance, 0.0) / 5.0),
                 jnp.exp(-jnp.maximum(clearance, 0.0) / 20.0),
-                along,
-                across,
                 along / dist,
                 across / dist,
                 closing,
                 h[hull_sim.IX_PY],
                 s,
                 1.0 - c,
+                h[hull_sim.IX_VX] - self.cruise_speed,
                 nu[0] - self.cruise_speed,
                 nu[1],
                 nu[2],
@@ -319,6 +324,13 @@ class UsvEnv:
                 h[hull_sim.IX_NOZZLE] / p.max_nozzle,
             ]
         )
+
+    def cost_goal_state(self) -> Array:
+        """Where the task is done, for the neural cost's anchor: [11]. On the course line at
+        cruise speed, heading along it, the jets at the thrust that holds that speed, the pole
+        (of the first condition's radius) 1 km astern."""
+        radius = self.x0[0, IX_RADIUS]
+        return self.start_state(jnp.asarray([-1000.0, 0.0]), radius, self.cruise_speed)
 
     @property
     def cost_residual_names(self) -> tuple[str, ...]:

@@ -47,6 +47,7 @@ from diffgcl.usv.pipeline import (
     learned_cost_weights,
     run_over_seeds,
     run_usv,
+    usv_rgcl,
 )
 from diffgcl.usv.retraining import (
     ATTEMPT_FIGURES,
@@ -105,6 +106,7 @@ __all__ = [
     "demo_batch_pooled",
     "demo_clearance_median",
     "fast_run_config",
+    "usv_rgcl",
     "heldout_starts",
     "identify_hull",
     "learned_cost_weights",

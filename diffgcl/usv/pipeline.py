@@ -92,22 +92,42 @@ FAST_RGCL_OVERRIDES = (
 )
 
 
-def fast_run_config(task: UsvTaskConfig | None = None) -> UsvRunConfig:
+def usv_rgcl(overrides=(), *, fast: bool = False):
+    """The USV's rGCL settings: :func:`~diffgcl.algorithms.presets.usv` with ``overrides``
+    (``"a.b=value"``, :func:`~diffgcl.algorithms.presets.with_overrides`), where ``cost=weighted``
+    or ``cost=neural`` picks the learned cost's form (``neural``:
+    :func:`~diffgcl.algorithms.presets.usv_neural`); ``fast``: with :data:`FAST_RGCL_OVERRIDES`
+    before ``overrides``."""
+    from diffgcl.algorithms.presets import usv as usv_preset
+    from diffgcl.algorithms.presets import with_overrides
+
+    cost, rest = "weighted", []
+    for item in overrides:
+        name, _, value = item.partition("=")
+        if name.strip() == "cost":
+            cost = value.strip()
+        else:
+            rest.append(item)
+    config = usv_preset(cost)
+    if fast:
+        config = with_overrides(config, list(FAST_RGCL_OVERRIDES))
+    return with_overrides(config, rest)
+
+
+def fast_run_config(task: UsvTaskConfig | None = None, overrides=()) -> UsvRunConfig:
     """A run at smoke-test scale (``--fast`` of ``diffgcl usv`` and
     ``experiments/usv_avoidance.py``): ``task`` (default :class:`UsvTaskConfig`) with windows of
     240 steps (100 before the closest approach, 140 after, 40 trained past them), rGCL with
     :data:`FAST_RGCL_OVERRIDES` (6 iterations, the last 2 on a frozen cost, shorter GCL and
     S-step passes), 4 iterations of the hand-written cost's reference, 32 held-out situations
-    and no retraining (6 iterations leave controllers off course: every seed would warn)."""
+    and no retraining (6 iterations leave controllers off course: every seed would warn);
+    ``overrides`` as :func:`usv_rgcl`'s."""
     import dataclasses
-
-    from diffgcl.algorithms.presets import usv as usv_preset
-    from diffgcl.algorithms.presets import with_overrides
 
     task = dataclasses.replace(
         task if task is not None else UsvTaskConfig(), before=100, after=140, train_extra=40
     )
-    rgcl = with_overrides(usv_preset(), list(FAST_RGCL_OVERRIDES))
+    rgcl = usv_rgcl(overrides, fast=True)
     return UsvRunConfig(task=task, rgcl=rgcl, heldout=32, expert_iterations=4, retrain_warned=0)
 
 
