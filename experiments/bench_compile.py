@@ -21,7 +21,8 @@ compiled, and for each program that took more than 0.5 s its name, compile secon
 (StableHLO operations, counted in the lowered module); ``run_s`` = wall − (trace + lower +
 compile), the time spent running.
 
-``--baseline REV`` runs every entry point a second time with the library as it was at git
+A version whose process fails (a crash) is reported in the table and the JSON (``runs.failed``)
+and the other runs go on. ``--baseline REV`` runs every entry point a second time with the library as it was at git
 revision ``REV`` (extracted to a temporary folder and imported from there), alternating
 baseline and current, each in its own fresh process and empty cache: the figures before and after
 a change, measured in one run on the same machine::
@@ -265,6 +266,11 @@ def fresh_cache_root(into: Path) -> Path:
     return root
 
 
+class WorkerFailed(RuntimeError):
+    """An entry point's process failed (a crash of a library version, say): reported, and the
+    other entry points and versions still run."""
+
+
 def run_worker(code: Path, entry: str, demos_dir: Path) -> dict:
     with tempfile.TemporaryDirectory(prefix="diffgcl-bench-worker-") as tmp:
         env = _env(code)
@@ -274,8 +280,13 @@ def run_worker(code: Path, entry: str, demos_dir: Path) -> dict:
         cmd += ["--jax-cache", cache, "--demos-dir", str(demos_dir)]
         out = subprocess.run(cmd, cwd=code, env=env, capture_output=True, text=True)
     if out.returncode != 0:
+        how = (
+            f"killed by signal {-out.returncode}"
+            if out.returncode < 0
+            else f"exit {out.returncode}"
+        )
         tail = "\n".join(out.stderr.strip().splitlines()[-15:])
-        raise RuntimeError(f"{entry} ({code}) failed:\n{tail}")
+        raise WorkerFailed(f"{entry} ({code}) failed, {how}:\n{tail}")
     return json.loads(out.stdout.strip().splitlines()[-1])
 
 
@@ -322,7 +333,13 @@ def main(argv=None) -> int:
         for entry in entries:
             for _ in range(args.repeats):
                 for name, code in codes.items():
-                    r = run_worker(code, entry, demos_dir)
+                    try:
+                        r = run_worker(code, entry, demos_dir)
+                    except WorkerFailed as err:
+                        print(f"{entry:16s} {name:9s} {str(err).splitlines()[0]}", flush=True)
+                        failures = results.setdefault("failed", {}).setdefault(name, {})
+                        failures[entry] = str(err)
+                        continue
                     results[name].setdefault(entry, []).append(r)
                     print(
                         f"{entry:16s} {name:9s} {r['trace_s']:6.1f}s {r['lower_s']:6.1f}s "
@@ -347,7 +364,7 @@ def summarise(results: dict) -> dict:
 
     out: dict = {"runs": results}
     for name, suffix in (("current", ""), ("baseline", "_baseline")):
-        by_entry = results.get(name)
+        by_entry = {e: runs for e, runs in results.get(name, {}).items() if runs}
         if not by_entry:
             continue
         headline = {
