@@ -21,11 +21,11 @@ compiled, and for each program that took more than 0.5 s its name, compile secon
 (StableHLO operations, counted in the lowered module); ``run_s`` = wall − (trace + lower +
 compile), the time spent running.
 
-A version whose process fails (a crash) is reported in the table and the JSON (``runs.failed``)
-and the other runs go on. ``--baseline REV`` runs every entry point a second time with the library as it was at git
+``--baseline REV`` runs every entry point a second time with the library as it was at git
 revision ``REV`` (extracted to a temporary folder and imported from there), alternating
 baseline and current, each in its own fresh process and empty cache: the figures before and after
-a change, measured in one run on the same machine::
+a change, measured in one run on the same machine. A version whose process fails (a crash) is
+reported in the table and the JSON (``runs.failed``), and the other runs go on::
 
     python experiments/bench_compile.py --json runs/bench_compile.json [--baseline REV]
         [--entries arm_v2,reacher_learn] [--repeats 1]
