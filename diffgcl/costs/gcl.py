@@ -195,12 +195,8 @@ def goal_penalty(network: CostNetwork, params: CostParams, X: Array) -> Array:
     T = X.shape[0] - 1
     norm = jax.lax.stop_gradient(params.norm)
     std = jnp.maximum(jnp.sqrt(norm.var), network.config.std_floor)
-    if network.feature_map is None:
-        grad = jax.grad(lambda x: network.state_cost(params, x, T))(X[-1])
-        return jnp.sum((grad * std) ** 2)
-    phi = network.feature_map(X[-1])
-    bare = CostNetwork(network.config, phi.shape[0], network.dU, network.param_dtype)
-    grad = jax.grad(lambda f: bare.state_cost(params, f, T))(phi)
+    f = network.state_input(X[-1])
+    grad = jax.grad(lambda f: network.state_cost_of_input(params, f, T))(f)
     return jnp.sum((grad * std) ** 2)
 
 

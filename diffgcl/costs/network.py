@@ -344,14 +344,20 @@ class CostNetwork:
     def normalise(self, params: CostParams, x: Array) -> Array:
         """``(φ(x) − mean) / max(std, floor)`` (``φ(x) = x`` without a feature map) with the
         statistics held constant: [state_input_dim]."""
+        return self._normalise_input(params, self.state_input(x))
+
+    def _normalise_input(self, params: CostParams, f: Array) -> Array:
         norm = jax.lax.stop_gradient(params.norm)
         std = jnp.maximum(jnp.sqrt(norm.var), self.config.std_floor)
-        return (self.state_input(x) - norm.mean) / std
+        return (f - norm.mean) / std
 
     def network_input(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
         """The feature network's input: the normalised state, with ``t / horizon`` appended when
         ``time_input`` is on: [dIn]."""
-        z = self.normalise(params, x)
+        return self._network_input_of(params, self.state_input(x), t)
+
+    def _network_input_of(self, params: CostParams, f: Array, t: Array | int = 0) -> Array:
+        z = self._normalise_input(params, f)
         if self.config.time_input:
             tau = jnp.asarray(t, z.dtype) / self.config.horizon
             z = jnp.concatenate([z, tau[None]])
@@ -400,13 +406,18 @@ class CostNetwork:
     def state_residual(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
         """``A y(x, t) + b``: [F] (as ``M z + m`` when ``y`` is affine; under ``vmap`` over
         states ``M`` is formed once, since it does not depend on the state)."""
+        return self.residual_of_input(params, self.state_input(x), t)
+
+    def residual_of_input(self, params: CostParams, f: Array, t: Array | int = 0) -> Array:
+        """:meth:`state_residual` as a function of the network's input before normalisation,
+        ``f = φ(x)`` (``x`` without a feature map)."""
         if self.config.form == "weighted":
-            return self.weighted_residual(params, x)
-        z = self.network_input(params, x, t)
+            return jnp.exp(0.5 * self.log_weights(params)) * f / self.residual_scale(params)
+        z = self._network_input_of(params, f, t)
         if self.config.form == "neural":
-            goal = self.network_input(params, jnp.asarray(self.goal_state, z.dtype), t)
-            y, y_goal = self._apply_features(params, z), self._apply_features(params, goal)
-            return params.net["A"] @ (y - y_goal)
+            goal = self.state_input(jnp.asarray(self.goal_state, f.dtype))
+            y_goal = self._apply_features(params, self._network_input_of(params, goal, t))
+            return params.net["A"] @ (self._apply_features(params, z) - y_goal)
         if self.is_affine:
             M, m = self.affine_residual_map(params)
             return M @ z + m
@@ -435,8 +446,7 @@ class CostNetwork:
 
     def weighted_residual(self, params: CostParams, x: Array) -> Array:
         """``e^{θ̃/2} ⊙ ρ(x) / rms``: [K] (weighted form)."""
-        rho = self.state_input(x)
-        return jnp.exp(0.5 * self.log_weights(params)) * rho / self.residual_scale(params)
+        return self.residual_of_input(params, self.state_input(x))
 
     def affine_state_quadratic(self, params: CostParams) -> tuple[Array, Array, Array]:
         """``(G: [dIn, dIn], g: [dIn], c: [])`` with ``‖M z + m‖² = zᵀGz + 2gᵀz + c`` (``G = MᵀM``,
@@ -453,11 +463,16 @@ class CostNetwork:
         not to ``s``: about ``1e-7 · (zᵀGz + c)`` in float32, far below the cost differences
         that the GCL objective weighs.
         """
+        return self.state_cost_of_input(params, self.state_input(x), t)
+
+    def state_cost_of_input(self, params: CostParams, f: Array, t: Array | int = 0) -> Array:
+        """:meth:`state_cost` as a function of the network's input before normalisation,
+        ``f = φ(x)`` (``x`` without a feature map): what GCL's goal regulariser differentiates."""
         if self.is_affine:
-            z = self.network_input(params, x, t)
+            z = self._network_input_of(params, f, t)
             G, g, c = self.affine_state_quadratic(params)
             return self.temperature(params) * (z @ (G @ z) + 2.0 * (g @ z) + c)
-        r = self.state_residual(params, x, t)
+        r = self.residual_of_input(params, f, t)
         return self.temperature(params) * (r @ r)
 
     def residual(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
