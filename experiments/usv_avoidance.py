@@ -19,8 +19,9 @@ Figures (JSON): ``episodes`` (held-out rollouts judged), ``collision_rate``,
 demos'), ``expert_cost_collision_rate``, ``bc_collision_rate``, ``bc_return_to_course_rate``,
 ``radar_only_collision_rate``, ``wall_seconds``, and each method's full score; from situations of
 wider ranges than the demos' (pole radius 0.2–1.5 m, the boat's offset 1.5× the demos' range),
-``wider_collision_rate``, ``wider_return_to_course_rate``, ``wider_clearance_ratio_vs_demos`` and
-the same with ``expert_cost_`` and ``bc_`` in front.
+``wider_collision_rate``, ``wider_return_to_course_rate``, ``wider_clearance_ratio_vs_demos``;
+from the held-out situations with a second pole 120-180 m beyond the first, the same with
+``two_poles_``; each also with ``expert_cost_`` and ``bc_`` in front.
 """
 
 from __future__ import annotations
@@ -119,10 +120,11 @@ def headline(main: dict, radar: dict | None) -> dict:
         "bc_return_to_course_rate": main.get("bc", {}).get("return_to_course_rate"),
     }
     for prefix, name in (("", "rgcl"), ("expert_cost_", "expert"), ("bc_", "bc")):
-        wide = main.get(name, {}).get("wider")
-        if wide is not None:
-            for key in ("collision_rate", "return_to_course_rate", "clearance_ratio_vs_demos"):
-                out[f"{prefix}wider_{key}"] = wide.get(key)
+        for row in ("wider", "two_poles"):
+            score = main.get(name, {}).get(row)
+            if score is not None:
+                for key in ("collision_rate", "return_to_course_rate", "clearance_ratio_vs_demos"):
+                    out[f"{prefix}{row}_{key}"] = score.get(key)
     if radar is not None:
         out["radar_only_collision_rate"] = radar.get("rgcl", {}).get("collision_rate")
         out["radar_only_return_to_course_rate"] = radar.get("rgcl", {}).get("return_to_course_rate")

@@ -333,3 +333,29 @@ def test_neural_cost_is_zero_at_the_goal_and_reads_bounded_features():
         from diffgcl.costs.network import CostNetwork
 
         CostNetwork(usv_neural().network, usv.dX, usv.dU)
+
+
+def test_two_pole_env_sees_and_collides_with_both_poles():
+    """The judging env with a second pole further down the course: the hull moves as in the
+    one-pole env, the beams read the nearer pole, the clearance is to the nearer pole, and the
+    observation keeps the one-pole layout."""
+    from diffgcl.envs.usv import DX, two_pole_env
+
+    usv = make_usv_env(horizon=20)
+    x0 = usv.initial_states()[:2]
+    two = two_pole_env(usv, x0, (100.0, 100.0), (1.0, 1.0), jax.random.PRNGKey(0))
+    assert two.dX == DX + 3 and two.dO == usv.dO and two.x0.shape == (2, DX + 3)
+    x = two.x0[0]
+    np.testing.assert_allclose(float(x[DX]), float(x0[0, hull_sim.IX_OBS_X]) + 100.0)
+    u = jnp.array([0.1, -0.2])
+    np.testing.assert_array_equal(np.asarray(two.step(x, u)[:DX]), np.asarray(usv.step(x[:DX], u)))
+    np.testing.assert_array_equal(np.asarray(two.step(x, u)[DX:]), np.asarray(x[DX:]))
+    # Far from both: the first pole is nearer, and its reading is the one-pole env's.
+    assert float(two.clearance(x)) == float(usv.clearance(x[:DX]))
+    np.testing.assert_array_equal(np.asarray(two.obs(x)), np.asarray(usv.obs(x[:DX])))
+    # Just short of the second pole (the first far astern): the beams and clearance see it.
+    near = x.at[hull_sim.IX_PX].set(x[DX] - 12.0).at[hull_sim.IX_PY].set(x[DX + 1])
+    assert float(two.clearance(near)) < 12.0 < float(usv.clearance(near[:DX]))
+    assert float(jnp.min(two.ranges(near))) < float(jnp.min(usv.ranges(near[:DX])))
+    inside = near.at[hull_sim.IX_PX].set(x[DX])
+    assert bool(two.metrics(jnp.stack([x, inside]))["collision"])

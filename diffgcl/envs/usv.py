@@ -394,6 +394,55 @@ class UsvEnv:
         return x.at[IX_RADIUS].set(radius)
 
 
+IX_POLE2 = slice(DX, DX + 2)  # the second pole's position in a TwoPoleUsvEnv state
+IX_RADIUS2 = DX + 2
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class TwoPoleUsvEnv(UsvEnv):
+    """The task with a second pole further down the course, for judging policies trained on one
+    (:func:`two_pole_env`): state ``[x (11); pole2_x, pole2_y, pole2_radius]`` (dX = 14). The
+    hull moves as in :class:`UsvEnv`; the sensors see both poles (each beam reads the nearer), the
+    clearance is to the nearer pole, and a collision is with either. Observations have the
+    one-pole env's layout, so a policy trained there acts here unchanged."""
+
+    dX: int = DX + 3
+
+    def step(self, x: Array, u: Array) -> Array:
+        check_shape("usv.step", "x", x, (self.dX,))
+        nxt = hull_sim.hull_step(self.params, x[:IX_RADIUS], self.command(u), self.model)
+        return jnp.concatenate([nxt, x[IX_RADIUS:]])
+
+    def _second(self, x: Array) -> Array:
+        """The one-pole state [11] of the same hull with the second pole in place of the first."""
+        return jnp.concatenate([x[: hull_sim.SL_OBS.start], x[IX_POLE2], x[IX_RADIUS2, None]])
+
+    def ranges(self, x: Array, key: PRNGKey | None = None) -> Array:
+        keys = (None, None) if key is None else tuple(jax.random.split(key))
+        one = UsvEnv.ranges(self, x[:DX], keys[0])
+        two = UsvEnv.ranges(self, self._second(x), keys[1])
+        return jnp.minimum(one, two)
+
+    def clearance(self, x: Array) -> Array:
+        return jnp.minimum(UsvEnv.clearance(self, x[:DX]), UsvEnv.clearance(self, self._second(x)))
+
+
+def two_pole_env(env: UsvEnv, x0: Array, gap, radius, key: PRNGKey) -> TwoPoleUsvEnv:
+    """``env`` (one pole) with a second pole on the course line beyond each start's first: ``gap``
+    (m, a (low, high) range) further down the course, of a radius drawn from ``radius`` (a range);
+    the starts ``x0: [B, 11]`` keep everything else. The env judges with ``env.horizon``."""
+    k_gap, k_radius = jax.random.split(key)
+    n, dtype = x0.shape[0], x0.dtype
+    d = jax.random.uniform(k_gap, (n,), dtype, *gap)
+    r = jax.random.uniform(k_radius, (n,), dtype, *radius)
+    pole2 = jnp.stack([x0[:, hull_sim.IX_OBS_X] + d, x0[:, hull_sim.IX_OBS_Y]], axis=-1)
+    x2 = jnp.concatenate([x0, pole2, r[:, None]], axis=-1)
+    fields = {f.name: getattr(env, f.name) for f in dataclasses.fields(UsvEnv) if f.init}
+    names = (*STATE_NAMES, "pole2_x", "pole2_y", "pole2_radius")
+    changes = {"x0": x2, "dX": DX + 3, "name": env.name + "_two_poles", "state_names": names}
+    return TwoPoleUsvEnv(**{**fields, **changes})
+
+
 def default_conditions(radius: float = 0.5, speed: float = 10.0) -> np.ndarray:
     """x0 [4, 11]: the hull env's default poles (:data:`diffgcl.envs.hull.DEFAULT_POLES`) ahead of
     a boat at the origin on course at ``speed`` (thrust state at the thrust that holds it)."""

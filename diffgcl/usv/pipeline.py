@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffgcl.data.demos import DemoSet
-from diffgcl.envs.usv import UsvEnv
+from diffgcl.envs.usv import UsvEnv, two_pole_env
 from diffgcl.sim import hull as hull_sim
 from diffgcl.usv.bags import pole_radii
 from diffgcl.usv.evaluation import SituationRanges, heldout_starts, policy_tracks
@@ -53,7 +53,10 @@ class UsvRunConfig:
     their own training starts (:func:`train_retrying_warned`; 0: warn only); wider: also judge
     every policy from ``heldout`` situations of wider ranges than the demos' (pole radius
     ``wider_radius``, the boat's offset ``wider_offset_scale`` × the demos' range;
-    :meth:`SituationRanges.widened`), reported apart (``<method>.wider``).
+    :meth:`SituationRanges.widened`), reported apart (``<method>.wider``); two_poles: also judge
+    every policy from the held-out situations with a second pole on the course line
+    ``two_pole_gap`` m beyond the first (:func:`~diffgcl.envs.usv.two_pole_env`, radius from the
+    demos' range), reported apart (``<method>.two_poles``).
     """
 
     task: UsvTaskConfig = UsvTaskConfig()
@@ -72,6 +75,8 @@ class UsvRunConfig:
     wider: bool = True
     wider_radius: tuple[float, float] = (0.2, 1.5)
     wider_offset_scale: float = 1.5
+    two_poles: bool = True
+    two_pole_gap: tuple[float, float] = (120.0, 180.0)
 
     def __post_init__(self):
         unknown = set(self.methods) - set(METHODS)
@@ -184,6 +189,7 @@ def learned_cost_weights(network, params, names: tuple[str, ...]) -> dict:
 
 
 WIDER_FOLD = 77  # the wider situations' draw: fold_in(PRNGKey(heldout_seed), WIDER_FOLD)
+TWO_POLES_FOLD = 78  # the second poles' draw
 
 
 def gcl_diagnostics(metrics) -> dict:
@@ -301,6 +307,13 @@ def run_usv(
     summary["evaluation_horizon"] = task.horizon + config.eval_extra
     if wider is not None:
         summary["wider_situations"] = dataclasses.asdict(wider[1])
+    env_two = None
+    if config.two_poles:
+        key_two = jax.random.fold_in(jax.random.PRNGKey(config.heldout_seed), TWO_POLES_FOLD)
+        env_two = two_pole_env(
+            env_true, jnp.asarray(x0_heldout), config.two_pole_gap, ranges.radius, key_two
+        )
+        summary["two_pole_gap_m"] = list(config.two_pole_gap)
     summary["training_horizon"] = task.training_horizon
     run = UsvRun(summary, env, env_true, task_demos, x0_heldout, {}, {}, train_env=train_env)
     eval_key = jax.random.PRNGKey(config.heldout_seed + 1)
@@ -326,6 +339,16 @@ def run_usv(
                 env_wide, wide_tracks, wide["demo_min_clearance_median_m"]
             )
             score["wider"] = wide
+        if env_two is not None:
+            two_tracks = policy_tracks(
+                env_two, policy, jax.tree.map(jnp.asarray, params), np.asarray(env_two.x0), keys
+            )
+            flat = two_tracks.reshape(-1, *two_tracks.shape[2:])
+            two = score_rollouts(env_two, flat, task_demos.X, demo_env=env_true)
+            two["per_seed"] = per_seed_figures(
+                env_two, two_tracks, two["demo_min_clearance_median_m"]
+            )
+            score["two_poles"] = two
         summary[name] = {**summary.get(name, {}), **score}
         _say(
             verbose,
@@ -334,6 +357,14 @@ def run_usv(
             f" m (demos {score['demo_min_clearance_median_m']:.1f} m), path to demos "
             f"{score['path_distance_to_demos_median_m']:.1f} m",
         )
+        if env_two is not None:
+            two = score["two_poles"]
+            _say(
+                verbose,
+                f"  {name}, two poles: collisions {two['collision_rate']:.2f}, back on course "
+                f"{two['return_to_course_rate']:.2f}, clearance "
+                f"{two['clearance_ratio_vs_demos']:.2f}× the demos'",
+            )
         if wider is not None:
             _say(
                 verbose,

@@ -39,7 +39,7 @@ def straight_side(X) -> np.ndarray:
     return np.sign(lateral - x0[:, hull_sim.IX_OBS_Y])
 
 
-def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
+def score_rollouts(env: UsvEnv, X, demo_X, demo_env: UsvEnv | None = None) -> dict:
     """The USV figures of rollouts ``X: [B, T'+1, 11]`` against the demos ``demo_X: [N, T+1, 11]``
     (T' ≥ T: the evaluation may run past the demos' window).
 
@@ -51,12 +51,13 @@ def score_rollouts(env: UsvEnv, X, demo_X) -> dict:
     port passes beside the demos'; ``straight_side_share``: the share that pass on the side they
     would have passed on sailing straight on (:func:`straight_side`; about 0.5 for a side picked
     at random), beside the demos'; ``turned_back_rate``: the heading more than 90° off the course
-    at some step (turning round, circling)."""
+    at some step (turning round, circling). ``demo_env`` judges the demos where their states are
+    not ``env``'s (one pole, where ``env`` has two; default ``env``)."""
     X = np.asarray(X)
     T1 = demo_X.shape[1]
     m = trajectory_metrics(env, X)
     w = trajectory_metrics(env, X[:, :T1])
-    d = trajectory_metrics(env, demo_X)
+    d = trajectory_metrics(env if demo_env is None else demo_env, demo_X)
     demo_clearance = float(np.median(d["min_clearance"]))
     clearance = float(np.median(m["min_clearance"]))
     return {
