@@ -25,6 +25,7 @@ from diffgcl.costs.gcl import (
     make_cost_learner,
     minibatch,
     mono_penalty,
+    tempering_exponent,
 )
 from diffgcl.costs.model_samples import model_log_density, model_weighted_samples
 from diffgcl.costs.network import CostNetwork, CostNetworkConfig
@@ -98,6 +99,66 @@ def test_without_importance_weights_the_gradient_is_feature_matching():
     np.testing.assert_allclose(float(metrics.log_partition), 0.0, atol=1e-9)
     with pytest.raises(ValueError, match="demos_in_partition"):
         GCLConfig(importance_weights=False)
+
+
+def test_tempered_weights_keep_the_effective_sample_size_and_their_gradient():
+    """min_ess: the partition's weights become softmax(α a) with the largest α whose effective
+    sample size is min_ess × the batch; the gradient is mean_demo ∂c − Σ_j softmax(α a)_j ∂c(τ_j)
+    (tempered importance sampling), computed here from α and the costs alone."""
+    config = GCLConfig(min_ess=0.5)
+    params = NET.init(jax.random.key(0))
+    demos = random_set(jax.random.key(1), 3)
+    samples = random_set(jax.random.key(2), 5, log_q_scale=40.0)  # one weight dominates
+
+    def objective(net, config):
+        return gcl_objective(NET, params.replace(net=net), demos, samples, config)
+
+    _, untempered = objective(params.net, GCLConfig())
+    assert float(untempered.ess) < 1.5 and float(untempered.tempering) == 1.0
+    (_, metrics), auto = jax.value_and_grad(objective, has_aux=True)(params.net, config)
+    alpha = float(metrics.tempering)
+    assert 0.0 < alpha < 1.0
+    np.testing.assert_allclose(float(metrics.ess), 0.5 * 8, rtol=1e-6)
+
+    def traj_cost(net, X, U):
+        return NET.trajectory_cost(params.replace(net=net), X, U)
+
+    X_all = jnp.concatenate([samples.X, demos.X])
+    U_all = jnp.concatenate([samples.U, demos.U])
+    log_q = np.concatenate([samples.log_q, demos.log_q])
+    a = -np.asarray(jax.vmap(traj_cost, in_axes=(None, 0, 0))(params.net, X_all, U_all)) - log_q
+    w = np.exp(alpha * (a - a.max()))
+    w /= w.sum()
+    np.testing.assert_allclose(1.0 / np.sum(w**2), 4.0, rtol=1e-6)  # the ESS, recomputed
+    grad_c = jax.vmap(jax.grad(traj_cost), in_axes=(None, 0, 0))
+    g_demo = grad_c(params.net, demos.X, demos.U)
+    g_all = grad_c(params.net, X_all, U_all)
+    explicit = jax.tree.map(
+        lambda gd, ga: gd.mean(0) - jnp.tensordot(jnp.asarray(w), ga, axes=1), g_demo, g_all
+    )
+    for a_, b in zip(jax.tree.leaves(auto), jax.tree.leaves(explicit), strict=True):
+        np.testing.assert_allclose(a_, b, rtol=1e-8, atol=1e-10)
+
+
+def test_tempering_exponent():
+    """α = 1 where the weights already meet the target; else the bisection's α meets it within
+    its tolerance and a slightly larger α does not; masked entries play no part."""
+    mask = jnp.array([True] * 6 + [False] * 2)
+    flat = jnp.zeros(8)
+    assert float(tempering_exponent(flat, mask, 0.9)) == 1.0
+    log_w = jnp.array([0.0, -30.0, -60.0, -90.0, -120.0, -150.0, 500.0, 500.0])
+
+    def ess(alpha):
+        w = np.exp(alpha * np.asarray(log_w[:6]))
+        w /= w.sum()
+        return 1.0 / np.sum(w**2)
+
+    for target in (0.3, 0.5, 0.8):
+        alpha = float(tempering_exponent(log_w, mask, target))
+        assert ess(alpha) >= 6 * target * (1 - 1e-6)
+        assert ess(alpha * 1.001) < 6 * target
+    with pytest.raises(ValueError, match="min_ess"):
+        GCLConfig(min_ess=1.5)
 
 
 def gaussian_controller(k, var):

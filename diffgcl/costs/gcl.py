@@ -56,6 +56,19 @@ self-normalised weights can rest on one sample. The estimate is biased by the co
 KL step (they lag the cost) and is only as good as the Laplace approximation; the demos are not
 draws from ``p_φ`` and stay out of the partition.
 
+Tempered importance weights (``GCLConfig.min_ess``, off by default): over hundreds of steps the
+log weights ``a_j = −c_φ(τ_j) − log q(τ_j)`` of a batch spread over hundreds of nats and the
+self-normalised weights rest on one trajectory (effective sample size 1), so the update compares
+the demos with that one sample alone. The tempered partition term ``(1/α) log(1/M Σ_j e^{α a_j})``,
+``0 < α ≤ 1``, has the gradient ``−Σ_j softmax(α a)_j ∂c/∂φ(τ_j)``: the weights ``(p/q)^α`` of
+tempered importance sampling. ``α = 1`` is GCL's estimate, ``α → 0`` feature matching
+(every sample alike). Per condition and update step, ``α`` is the largest value in
+``[10⁻⁴, 1]`` whose weights keep an effective sample size of at least ``min_ess`` times the
+batch (bisection on ``log α``, held constant under the gradient), as adaptive tempering does in
+sequential Monte Carlo: where the weights are healthy the update is GCL's own. Unlike feature
+matching the objective stays bounded below when the demos are in the partition: as the cost's
+scale ``s → ∞`` the term tends to ``−s min_j c(τ_j)``, which the demos' own cost bounds.
+
 All are averaged over the trajectories they apply to. The update is optax Adam on ``params.net``
 (the input normaliser is data, not a parameter) with ``n_steps`` minibatch steps in ``lax.scan``.
 
@@ -111,7 +124,9 @@ class GCLConfig:
     mono_slack: regularisers; goal_weight: the goal regulariser (see the module docstring);
     importance_weights: weigh the partition's samples by ``exp(−c)/q`` (GCL); ``False`` treats
     them as draws from the current cost's own MaxEnt distribution (the LQR controllers
-    optimised for it stand in for it), so each weighs the same (module docstring).
+    optimised for it stand in for it), so each weighs the same (module docstring);
+    min_ess: temper the importance weights so that their effective sample size stays at least
+    this fraction of the partition's batch (0: GCL's untempered weights; module docstring).
     """
 
     n_steps: int = 20
@@ -129,8 +144,13 @@ class GCLConfig:
     mono_slack: float = 1.0
     goal_weight: float = 0.0
     importance_weights: bool = True
+    min_ess: float = 0.0
 
     def __post_init__(self):
+        if not 0.0 <= self.min_ess <= 1.0:
+            raise ValueError(
+                f"GCLConfig: min_ess={self.min_ess} is a fraction of the batch, in [0, 1]"
+            )
         if not self.importance_weights and self.demos_in_partition:
             raise ValueError(
                 "GCLConfig: importance_weights=False treats the samples as draws from the cost's "
@@ -165,7 +185,8 @@ class GCLState:
 class GCLMetrics:
     """Per gradient step (stacked to [n_steps] by the update): loss, demo_cost (mean demo
     trajectory cost), log_partition, lcr, mono, goal (the regularisers' unweighted values), ess
-    (effective sample size of the normalised partition weights, averaged over conditions),
+    (effective sample size of the normalised partition weights, tempered where they are,
+    averaged over conditions), tempering (the weights' exponent ``α``, 1 when untempered),
     grad_norm."""
 
     loss: Array
@@ -175,6 +196,7 @@ class GCLMetrics:
     mono: Array
     goal: Array
     ess: Array
+    tempering: Array
     grad_norm: Array
 
 
@@ -297,12 +319,16 @@ def gcl_objective(
     count = mask.sum()
     # Safe logsumexp: an all-masked batch contributes 0 and no NaN gradient.
     a_safe = jnp.where(mask, a_samp, jnp.finfo(c_demo.dtype).min)
+    if config.min_ess > 0.0:
+        alpha = tempering_exponent(a_safe, mask, config.min_ess)
+    else:
+        alpha = jnp.ones((), c_demo.dtype)
     log_partition = jnp.where(
-        count > 0, jax.nn.logsumexp(a_safe, where=mask) - jnp.log(jnp.maximum(count, 1)), 0.0
+        count > 0,
+        (jax.nn.logsumexp(alpha * a_safe, where=mask) - jnp.log(jnp.maximum(count, 1))) / alpha,
+        0.0,
     )
-    w = jax.nn.softmax(a_safe, where=mask)
-    w = jnp.where(mask, w, 0.0)
-    ess = 1.0 / jnp.maximum(jnp.sum(w**2), 1e-30)
+    ess = effective_sample_size(alpha * a_safe, mask)
 
     lcr_all = jnp.concatenate([jax.vmap(lcr_penalty)(s_samp), jax.vmap(lcr_penalty)(s_demo)])
     lcr = _masked_mean(lcr_all, jnp.concatenate([samples.valid, demos.valid]))
@@ -326,9 +352,36 @@ def gcl_objective(
         mono=mono,
         goal=goal,
         ess=ess,
+        tempering=alpha,
         grad_norm=jnp.zeros_like(loss),
     )
     return loss, metrics
+
+
+def effective_sample_size(log_w: Array, mask: Array) -> Array:
+    """``1 / Σ w̃²`` of the self-normalised weights ``w̃ = softmax(log_w)`` over ``mask``."""
+    w = jnp.where(mask, jax.nn.softmax(log_w, where=mask), 0.0)
+    return 1.0 / jnp.maximum(jnp.sum(w**2), 1e-30)
+
+
+def tempering_exponent(log_w: Array, mask: Array, min_ess: float, iterations: int = 40) -> Array:
+    """The largest ``α ∈ [10⁻⁴, 1]`` with ``effective_sample_size(α log_w) ≥ min_ess · count``
+    (1 when ``α = 1`` already has it), by bisection on ``log α``. No gradient flows through it."""
+    log_w = jax.lax.stop_gradient(log_w)
+    target = min_ess * mask.sum()
+    lo, hi = jnp.log(1e-4), jnp.zeros((), log_w.dtype)
+
+    def ess_at(log_alpha):
+        return effective_sample_size(jnp.exp(log_alpha) * log_w, mask)
+
+    def bisect(_, bounds):
+        lo, hi = bounds
+        mid = 0.5 * (lo + hi)
+        ok = ess_at(mid) >= target
+        return jnp.where(ok, mid, lo), jnp.where(ok, hi, mid)
+
+    lo, hi = jax.lax.fori_loop(0, iterations, bisect, (jnp.asarray(lo, log_w.dtype), hi))
+    return jnp.where(ess_at(jnp.zeros_like(hi)) >= target, 1.0, jnp.exp(lo))
 
 
 def _select(key: PRNGKey, valid: Array, n: int) -> tuple[Array, Array]:

@@ -194,7 +194,8 @@ TWO_POLES_FOLD = 78  # the second poles' draw
 
 def gcl_diagnostics(metrics) -> dict:
     """Per rGCL iteration, mean over seeds (lists [iterations]): the cost update's effective sample
-    size of the partition's weights (``gcl_ess``), the learned trajectory cost (over the demos'
+    size of the partition's weights (``gcl_ess``) and their tempering exponent (``gcl_tempering``,
+    1 when untempered: ``GCLConfig.min_ess``), the learned trajectory cost (over the demos'
     window) of the demos and of the iteration's GPS samples under the cost after that
     iteration's update, and how much dearer the samples are (``sample_excess``; a cost that no
     longer tells them apart has it near 0)."""
@@ -203,8 +204,10 @@ def gcl_diagnostics(metrics) -> dict:
     demo_mean = demo.mean(axis=(0, 2))
     sample_mean = samples.reshape(*samples.shape[:2], -1).mean(axis=(0, 2))
     ess = np.asarray(metrics.gcl.ess, np.float64).reshape(demo.shape[0], demo.shape[1], -1)
+    tempering = np.asarray(metrics.gcl.tempering, np.float64).reshape(ess.shape)
     return {
         "gcl_ess": ess.mean(axis=(0, 2)).tolist(),
+        "gcl_tempering": tempering.mean(axis=(0, 2)).tolist(),
         "demo_learned_cost": demo_mean.tolist(),
         "sample_learned_cost": sample_mean.tolist(),
         "sample_excess": (sample_mean - demo_mean).tolist(),
