@@ -78,6 +78,26 @@ def test_scores_of_hand_built_tracks():
     x0[:, 0, hull_sim.IX_OBS_X] = 100.0
     x0[1, 0, hull_sim.IX_PSI] = -np.deg2rad(2.0)
     np.testing.assert_array_equal(U.straight_side(x0), [1.0, -1.0])
+    # The situations: head-on misses by 1 m and 100 tan 2° - 1 m; the collision profile counts
+    # each episode in its third of every quantity.
+    x0[:, 0, IX_RADIUS] = [0.4, 0.9]
+    x0[:, 0, hull_sim.IX_VX] = [3.0, 4.0]
+    sit = U.situations(x0)
+    np.testing.assert_allclose(sit["straight_miss"], [1.0, 100 * np.tan(np.deg2rad(2.0)) - 1.0])
+    np.testing.assert_allclose(sit["offset"], [1.0, 1.0])
+    np.testing.assert_allclose(sit["speed"], [3.0, 4.0])
+    np.testing.assert_allclose(sit["radius"], [0.4, 0.9])
+    profile = U.collision_profile(x0, np.array([False, True]))
+    assert profile["collisions"] == 1 and profile["colliding"][0]["episode"] == 1
+    assert profile["radius"]["collisions"] == [0, 0, 1] and profile["radius"]["episodes"] == [
+        1,
+        0,
+        1,
+    ]
+    assert profile["radius"]["median_colliding"] == pytest.approx(0.9)
+    assert (
+        bad["collision_profile"]["collisions"] == 2 and same["collision_profile"]["colliding"] == []
+    )
     # A warning for a seed whose controllers hit the pole on their own starts, none otherwise.
     warn = U.controller_warnings([7, 8], seeds, 2)
     assert [seed for seed, _ in warn] == [7] and "hit the pole on 2 of their 2" in warn[0][1]

@@ -62,9 +62,11 @@ from diffgcl.usv.retraining import (
     training_warnings,
 )
 from diffgcl.usv.scores import (
+    collision_profile,
     path_distance_to_demos,
     per_seed_figures,
     score_rollouts,
+    situations,
     straight_side,
     trajectory_metrics,
 )
@@ -121,6 +123,8 @@ __all__ = [
     "run_over_seeds",
     "run_usv",
     "score_rollouts",
+    "situations",
+    "collision_profile",
     "seed_name",
     "straight_side",
     "task_margins",

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from diffgcl.envs.usv import UsvEnv
+from diffgcl.envs.usv import IX_RADIUS, UsvEnv
 from diffgcl.sim import hull as hull_sim
 
 
@@ -39,6 +39,54 @@ def straight_side(X) -> np.ndarray:
     return np.sign(lateral - x0[:, hull_sim.IX_OBS_Y])
 
 
+SITUATION_QUANTITIES = ("distance", "offset", "straight_miss", "heading", "speed", "radius")
+
+
+def situations(X) -> dict[str, np.ndarray]:
+    """The situation each rollout ``X: [B, T+1, ≥11]`` starts in (task frame, the first pole):
+    the pole's distance ahead and the boat's lateral offset from its line (m), ``straight_miss``
+    (how far from the pole's centre the boat would pass sailing straight on, m: small is
+    head-on), heading (rad), speed (m/s), the pole's radius (m); each [B]."""
+    x0 = np.asarray(X)[:, 0]
+    ahead = x0[:, hull_sim.IX_OBS_X] - x0[:, hull_sim.IX_PX]
+    lateral = x0[:, hull_sim.IX_PY] + ahead * np.tan(x0[:, hull_sim.IX_PSI])
+    return {
+        "distance": ahead,
+        "offset": x0[:, hull_sim.IX_PY] - x0[:, hull_sim.IX_OBS_Y],
+        "straight_miss": np.abs(lateral - x0[:, hull_sim.IX_OBS_Y]),
+        "heading": x0[:, hull_sim.IX_PSI],
+        "speed": np.hypot(x0[:, hull_sim.IX_VX], x0[:, hull_sim.IX_VY]),
+        "radius": x0[:, IX_RADIUS],
+    }
+
+
+def collision_profile(X, collided, listed: int = 32) -> dict:
+    """Where the collisions of rollouts ``X: [B, T+1, ≥11]`` (``collided: [B]`` bool) happen, by
+    the situations they start in (:func:`situations`): for each quantity, its terciles over all
+    episodes (``edges``), the episodes and collisions in each third, and the colliding episodes'
+    median beside everyone's; and the first ``listed`` colliding episodes (index into ``X``, their
+    situation)."""
+    collided = np.asarray(collided, bool)
+    sit = situations(X)
+    out: dict = {"collisions": int(collided.sum())}
+    for name in SITUATION_QUANTITIES:
+        v = sit[name]
+        edges = np.quantile(v, [1 / 3, 2 / 3])
+        third = np.searchsorted(edges, v, side="right")
+        out[name] = {
+            "edges": edges.tolist(),
+            "episodes": np.bincount(third, minlength=3).tolist(),
+            "collisions": np.bincount(third[collided], minlength=3).tolist(),
+            "median_all": float(np.median(v)),
+            "median_colliding": float(np.median(v[collided])) if collided.any() else None,
+        }
+    out["colliding"] = [
+        {"episode": int(i), **{name: float(sit[name][i]) for name in SITUATION_QUANTITIES}}
+        for i in np.flatnonzero(collided)[:listed]
+    ]
+    return out
+
+
 def score_rollouts(env: UsvEnv, X, demo_X, demo_env: UsvEnv | None = None) -> dict:
     """The USV figures of rollouts ``X: [B, T'+1, 11]`` against the demos ``demo_X: [N, T+1, 11]``
     (T' ≥ T: the evaluation may run past the demos' window).
@@ -51,8 +99,9 @@ def score_rollouts(env: UsvEnv, X, demo_X, demo_env: UsvEnv | None = None) -> di
     port passes beside the demos'; ``straight_side_share``: the share that pass on the side they
     would have passed on sailing straight on (:func:`straight_side`; about 0.5 for a side picked
     at random), beside the demos'; ``turned_back_rate``: the heading more than 90° off the course
-    at some step (turning round, circling). ``demo_env`` judges the demos where their states are
-    not ``env``'s (one pole, where ``env`` has two; default ``env``)."""
+    at some step (turning round, circling); ``collision_profile``: the situations the collisions
+    start in (:func:`collision_profile`; episode ``i`` of ``X``). ``demo_env`` judges the demos
+    where their states are not ``env``'s (one pole, where ``env`` has two; default ``env``)."""
     X = np.asarray(X)
     T1 = demo_X.shape[1]
     m = trajectory_metrics(env, X)
@@ -79,6 +128,7 @@ def score_rollouts(env: UsvEnv, X, demo_X, demo_env: UsvEnv | None = None) -> di
         "demo_port_share": float(np.mean(d["side"] > 0)),
         "straight_side_share": float(np.mean(m["side"] == straight_side(X))),
         "demo_straight_side_share": float(np.mean(d["side"] == straight_side(demo_X))),
+        "collision_profile": collision_profile(X, m["collision"]),
     }
 
 
