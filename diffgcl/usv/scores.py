@@ -33,10 +33,15 @@ def straight_side(X) -> np.ndarray:
     """The side (+1 port, −1 starboard, as :meth:`UsvEnv.metrics`' ``side``) on which each rollout
     ``X: [B, T+1, 11]`` would pass its pole if it sailed straight on from its start: the sign of
     the lateral offset from the pole at the pole's distance along the start heading."""
-    x0 = np.asarray(X)[:, 0]
+    return np.sign(_straight_on_offset(np.asarray(X)[:, 0]))
+
+
+def _straight_on_offset(x0: np.ndarray) -> np.ndarray:
+    """The lateral offset from the pole (m, + port) at which a boat in start states ``x0: [B, ≥11]``
+    would pass it sailing straight on."""
     ahead = x0[:, hull_sim.IX_OBS_X] - x0[:, hull_sim.IX_PX]
     lateral = x0[:, hull_sim.IX_PY] + ahead * np.tan(x0[:, hull_sim.IX_PSI])
-    return np.sign(lateral - x0[:, hull_sim.IX_OBS_Y])
+    return lateral - x0[:, hull_sim.IX_OBS_Y]
 
 
 SITUATION_QUANTITIES = ("distance", "offset", "straight_miss", "heading", "speed", "radius")
@@ -48,12 +53,10 @@ def situations(X) -> dict[str, np.ndarray]:
     (how far from the pole's centre the boat would pass sailing straight on, m: small is
     head-on), heading (rad), speed (m/s), the pole's radius (m); each [B]."""
     x0 = np.asarray(X)[:, 0]
-    ahead = x0[:, hull_sim.IX_OBS_X] - x0[:, hull_sim.IX_PX]
-    lateral = x0[:, hull_sim.IX_PY] + ahead * np.tan(x0[:, hull_sim.IX_PSI])
     return {
-        "distance": ahead,
+        "distance": x0[:, hull_sim.IX_OBS_X] - x0[:, hull_sim.IX_PX],
         "offset": x0[:, hull_sim.IX_PY] - x0[:, hull_sim.IX_OBS_Y],
-        "straight_miss": np.abs(lateral - x0[:, hull_sim.IX_OBS_Y]),
+        "straight_miss": np.abs(_straight_on_offset(x0)),
         "heading": x0[:, hull_sim.IX_PSI],
         "speed": np.hypot(x0[:, hull_sim.IX_VX], x0[:, hull_sim.IX_VY]),
         "radius": x0[:, IX_RADIUS],
