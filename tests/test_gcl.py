@@ -45,6 +45,30 @@ def random_set(key, n, log_q_scale=3.0) -> WeightedSamples:
     )
 
 
+def explicit_gcl_gradient(params, demos, samples, alpha=1.0):
+    """The GCL gradient written out: ``mean_demo ∂c(τ_i) − Σ_j w_j ∂c(τ_j)``, ``w`` the
+    normalised ``exp(α (−c(τ_j) − log q(τ_j)))`` over the samples and the demos appended to them;
+    returns ``(gradient, w)``."""
+
+    def traj_cost(net, X, U):
+        return NET.trajectory_cost(params.replace(net=net), X, U)
+
+    grad_c = jax.jit(jax.vmap(jax.grad(traj_cost), in_axes=(None, 0, 0)))
+    cost = jax.jit(jax.vmap(traj_cost, in_axes=(None, 0, 0)))
+    X_all = jnp.concatenate([samples.X, demos.X])
+    U_all = jnp.concatenate([samples.U, demos.U])
+    log_q = np.concatenate([samples.log_q, demos.log_q])
+    a = -np.asarray(cost(params.net, X_all, U_all), dtype=np.float64) - log_q
+    w = np.exp(alpha * (a - a.max()))
+    w /= w.sum()
+    g_demo = grad_c(params.net, demos.X, demos.U)
+    g_all = grad_c(params.net, X_all, U_all)
+    explicit = jax.tree.map(
+        lambda gd, ga: gd.mean(0) - jnp.tensordot(jnp.asarray(w), ga, axes=1), g_demo, g_all
+    )
+    return explicit, w
+
+
 def test_gradient_matches_explicit_gcl_gradient():
     """∇L = mean_demo ∂c(τ_i) − Σ_j (w_j / Σ_k w_k) ∂c(τ_j), w_j = exp(−c(τ_j) − log q(τ_j)),
     j over the samples and the demos appended to them (seed eq. 2.13)."""
@@ -58,21 +82,7 @@ def test_gradient_matches_explicit_gcl_gradient():
 
     auto = jax.jit(jax.grad(objective))(params.net)
 
-    def traj_cost(net, X, U):
-        return NET.trajectory_cost(params.replace(net=net), X, U)
-
-    grad_c = jax.jit(jax.vmap(jax.grad(traj_cost), in_axes=(None, 0, 0)))
-    cost = jax.jit(jax.vmap(traj_cost, in_axes=(None, 0, 0)))
-    g_demo = grad_c(params.net, demos.X, demos.U)
-    X_all = jnp.concatenate([samples.X, demos.X])
-    U_all = jnp.concatenate([samples.U, demos.U])
-    log_q = jnp.concatenate([samples.log_q, demos.log_q])
-    w = np.exp(np.asarray(-cost(params.net, X_all, U_all) - log_q, dtype=np.float64))
-    w_norm = w / w.sum()
-    g_all = grad_c(params.net, X_all, U_all)
-    explicit = jax.tree.map(
-        lambda gd, ga: gd.mean(0) - jnp.tensordot(jnp.asarray(w_norm), ga, axes=1), g_demo, g_all
-    )
+    explicit, _ = explicit_gcl_gradient(params, demos, samples)
     for a, b in zip(jax.tree.leaves(auto), jax.tree.leaves(explicit), strict=True):
         np.testing.assert_allclose(a, b, rtol=1e-9, atol=1e-11)
 
@@ -120,22 +130,8 @@ def test_tempered_weights_keep_the_effective_sample_size_and_their_gradient():
     assert 0.0 < alpha < 1.0
     np.testing.assert_allclose(float(metrics.ess), 0.5 * 8, rtol=1e-6)
 
-    def traj_cost(net, X, U):
-        return NET.trajectory_cost(params.replace(net=net), X, U)
-
-    X_all = jnp.concatenate([samples.X, demos.X])
-    U_all = jnp.concatenate([samples.U, demos.U])
-    log_q = np.concatenate([samples.log_q, demos.log_q])
-    a = -np.asarray(jax.vmap(traj_cost, in_axes=(None, 0, 0))(params.net, X_all, U_all)) - log_q
-    w = np.exp(alpha * (a - a.max()))
-    w /= w.sum()
+    explicit, w = explicit_gcl_gradient(params, demos, samples, alpha)
     np.testing.assert_allclose(1.0 / np.sum(w**2), 4.0, rtol=1e-6)  # the ESS, recomputed
-    grad_c = jax.vmap(jax.grad(traj_cost), in_axes=(None, 0, 0))
-    g_demo = grad_c(params.net, demos.X, demos.U)
-    g_all = grad_c(params.net, X_all, U_all)
-    explicit = jax.tree.map(
-        lambda gd, ga: gd.mean(0) - jnp.tensordot(jnp.asarray(w), ga, axes=1), g_demo, g_all
-    )
     for a_, b in zip(jax.tree.leaves(auto), jax.tree.leaves(explicit), strict=True):
         np.testing.assert_allclose(a_, b, rtol=1e-8, atol=1e-10)
 

@@ -323,34 +323,25 @@ def run_usv(
 
     def judge(name: str, policy, params) -> None:
         keys = jnp.stack([jax.random.fold_in(eval_key, s) for s in range(len(config.seeds))])
-        tracks = policy_tracks(
-            env_true, policy, jax.tree.map(jnp.asarray, params), x0_heldout, keys
-        )
+        params_j = jax.tree.map(jnp.asarray, params)
+
+        def scored(judge_env, x0, demo_env=None):
+            tracks = policy_tracks(judge_env, policy, params_j, x0, keys)
+            flat = tracks.reshape(-1, *tracks.shape[2:])
+            score = score_rollouts(judge_env, flat, task_demos.X, demo_env=demo_env)
+            score["per_seed"] = per_seed_figures(
+                judge_env, tracks, score["demo_min_clearance_median_m"]
+            )
+            return tracks, score
+
+        tracks, score = scored(env_true, x0_heldout)
         run.policies[name] = (policy, params)
         run.tracks[name] = tracks
-        score = score_rollouts(env_true, tracks.reshape(-1, *tracks.shape[2:]), task_demos.X)
-        score["per_seed"] = per_seed_figures(env_true, tracks, score["demo_min_clearance_median_m"])
         if wider is not None:
-            env_wide = wider[0]
-            wide_tracks = policy_tracks(
-                env_wide, policy, jax.tree.map(jnp.asarray, params), np.asarray(env_wide.x0), keys
-            )
-            wide = score_rollouts(
-                env_wide, wide_tracks.reshape(-1, *wide_tracks.shape[2:]), task_demos.X
-            )
-            wide["per_seed"] = per_seed_figures(
-                env_wide, wide_tracks, wide["demo_min_clearance_median_m"]
-            )
+            _, wide = scored(wider[0], np.asarray(wider[0].x0))
             score["wider"] = wide
         if env_two is not None:
-            two_tracks = policy_tracks(
-                env_two, policy, jax.tree.map(jnp.asarray, params), np.asarray(env_two.x0), keys
-            )
-            flat = two_tracks.reshape(-1, *two_tracks.shape[2:])
-            two = score_rollouts(env_two, flat, task_demos.X, demo_env=env_true)
-            two["per_seed"] = per_seed_figures(
-                env_two, two_tracks, two["demo_min_clearance_median_m"]
-            )
+            _, two = scored(env_two, np.asarray(env_two.x0), demo_env=env_true)
             score["two_poles"] = two
         summary[name] = {**summary.get(name, {}), **score}
         _say(
@@ -360,21 +351,15 @@ def run_usv(
             f" m (demos {score['demo_min_clearance_median_m']:.1f} m), path to demos "
             f"{score['path_distance_to_demos_median_m']:.1f} m",
         )
-        if env_two is not None:
-            two = score["two_poles"]
-            _say(
-                verbose,
-                f"  {name}, two poles: collisions {two['collision_rate']:.2f}, back on course "
-                f"{two['return_to_course_rate']:.2f}, clearance "
-                f"{two['clearance_ratio_vs_demos']:.2f}× the demos'",
-            )
-        if wider is not None:
-            _say(
-                verbose,
-                f"  {name}, wider situations: collisions {wide['collision_rate']:.2f}, back on "
-                f"course {wide['return_to_course_rate']:.2f}, clearance "
-                f"{wide['clearance_ratio_vs_demos']:.2f}× the demos'",
-            )
+        for key, label in (("two_poles", "two poles"), ("wider", "wider situations")):
+            if key in score:
+                row = score[key]
+                _say(
+                    verbose,
+                    f"  {name}, {label}: collisions {row['collision_rate']:.2f}, back on course "
+                    f"{row['return_to_course_rate']:.2f}, clearance "
+                    f"{row['clearance_ratio_vs_demos']:.2f}× the demos'",
+                )
 
     if "rgcl" in config.methods:
         from diffgcl.algorithms.rgcl import make_train
