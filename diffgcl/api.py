@@ -91,7 +91,7 @@ def expert_demos(
     path: str | os.PathLike | None = None,
     ilqr=None,
     restarts: bool = False,
-    initial: str = "zeros",
+    initial: str | None = None,
     verbose: bool = True,
 ) -> DemoSet:
     """Demonstrations for a user with a cost and no demos (:mod:`diffgcl.algorithms.trajopt`).
@@ -99,8 +99,10 @@ def expert_demos(
     iLQR on ``cost`` (default: the env's ``cost=``) from each start state ``x0: [C, dX]``
     (default: the env's conditions; with ``restarts`` the best of iLQR from zero actions and
     from a small constant action either way on each actuator,
-    :func:`diffgcl.algorithms.trajopt.solve_restarts`; ``initial="goal_lqr"`` or ``"best"``
-    starts iLQR from the goal's LQR, for balancing an unstable system, see
+    :func:`diffgcl.algorithms.trajopt.solve_restarts`; else from ``initial``, by default
+    ``"best"``: iLQR from zero actions and from the goal's LQR, keeping per start the cheaper
+    solution, so that an unstable system is balanced rather than left to fall;
+    ``"zeros"`` or ``"goal_lqr"`` runs one of them, see
     :func:`diffgcl.algorithms.trajopt.solve`), then ``per_start`` noisy rollouts of
     each solution's closed-loop controller ``u ~ N(K x + k, Σ_t)``, white noise. ``Σ_t`` has the
     shape of ``(Q_uu,t + μI)⁻¹`` — the demonstrator varies most where the cost-to-go is flattest
@@ -143,6 +145,7 @@ def expert_demos(
         env = env.with_conditions(x0)
     X0 = env.initial_states()
     config = ILQRConfig() if ilqr is None else ilqr
+    initial = trajopt.EXPERT_INITIAL if initial is None else initial
     solve = jax.jit(
         lambda x: trajopt.ilqr_controllers(
             env,

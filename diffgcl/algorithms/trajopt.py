@@ -55,6 +55,14 @@ def action_bounds(env: Env) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 INITIAL_ACTIONS = ("zeros", "goal_lqr", "best")
+# Where the expert's iLQR starts unless told otherwise (``api.expert_demos``, ``diffgcl demos
+# --mjcf``, :func:`make_gps_from_ilqr`): the better of zero actions and the goal's LQR. From zero
+# actions an unstable system falls at once and iLQR settles on a swinging local optimum
+# (gymnasium's double pendulum: 0 of 8 starts balanced); the goal's LQR means little where the
+# goal is no equilibrium at zero action (a fingertip on a target), and there zero actions win.
+# Twice iLQR's run time, in one program. :func:`solve` itself keeps zero actions by default: it
+# is the algorithm, this is the expert's choice.
+EXPERT_INITIAL = "best"
 
 
 def solve(
@@ -228,11 +236,13 @@ def make_gps_from_ilqr(
     ilqr_config: ILQRConfig | None = None,
     true_cost: CostFn | None = None,
     x0: Array | None = None,
+    initial: str = EXPERT_INITIAL,
 ) -> Callable[..., tuple[GPSState, GPSMetrics, ILQRResult]]:
     """``train(key, hparams=None) -> (state, metrics, ilqr_result)``: iLQR on ``cost`` from each
-    condition, then GPS's KL-constrained iterations starting from the iLQR controllers, whose
-    noise has the shape of ``(Q_uu + μI)⁻¹`` and mean variance ``init_var`` (from ``hparams``
-    or ``config``). ``cost`` is a residual with ``config.gauss_newton`` (for both)."""
+    condition (from ``initial``, see :func:`solve`), then GPS's KL-constrained iterations
+    starting from the iLQR controllers, whose noise has the shape of ``(Q_uu + μI)⁻¹`` and mean
+    variance ``init_var`` (from ``hparams`` or ``config``). ``cost`` is a residual with
+    ``config.gauss_newton`` (for both)."""
     import dataclasses
 
     X0 = jnp.asarray(env.initial_states() if x0 is None else x0)
@@ -243,7 +253,9 @@ def make_gps_from_ilqr(
 
     def train(key: PRNGKey, hparams: GPSHyperparams | None = None):
         init_var = config.init_var if hparams is None else hparams.init_var
-        ctrl, result = ilqr_controllers(env, cost, X0, config=ilqr_config, init_var=init_var)
+        ctrl, result = ilqr_controllers(
+            env, cost, X0, config=ilqr_config, init_var=init_var, initial=initial
+        )
         state, metrics = train_from(key, ctrl, hparams)
         return state, metrics, result
 

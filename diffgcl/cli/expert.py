@@ -142,8 +142,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--initial",
         choices=("zeros", "goal_lqr", "best"),
-        default="zeros",
-        help="iLQR's initial actions: zeros, the goal's LQR (for balancing), the better of both",
+        default=None,
+        help="iLQR's initial actions: zeros, the goal's LQR (for balancing), or (the default) "
+        "the better of both",
     )
 
 
