@@ -5,6 +5,10 @@ Entry points (``--entries``, default all):
 
 * ``arm_v2``, ``arm_v1`` — rGCL on the arm, ``default`` preset, the 32-seed batch of
   ``experiments/arm_rgcl.py`` (compiled and run once);
+* ``arm_v2_train``, ``arm_v1_train`` — the same 32 seeds through
+  :func:`diffgcl.algorithms.runner.train_seeds`, the runner behind ``diffgcl train`` and the API
+  (v2 staged: the simulator's programs shared, small draw and update programs; v1 one traced
+  program per chunk of iterations), run to the end;
 * ``arm_mdgps`` — rGCL v2 with a global policy (MDGPS) on the arm's four training starts of
   ``experiments/arm_policy.py`` (2 seeds, 10 iterations);
 * ``reacher_learn``, ``cartpole_learn`` — the ten lines of :mod:`diffgcl.api` on
@@ -44,7 +48,16 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-ENTRIES = ("arm_v2", "arm_v1", "arm_mdgps", "reacher_learn", "cartpole_learn", "usv_fast")
+ENTRIES = (
+    "arm_v2",
+    "arm_v1",
+    "arm_v2_train",
+    "arm_v1_train",
+    "arm_mdgps",
+    "reacher_learn",
+    "cartpole_learn",
+    "usv_fast",
+)
 EVENTS = {
     "/jax/core/compile/jaxpr_trace_duration": "trace_s",
     "/jax/core/compile/jaxpr_to_mlir_module_duration": "lower_s",
@@ -129,6 +142,21 @@ def _arm_rgcl(schedule: str) -> dict:
     return {"seeds": CHUNK}
 
 
+def _arm_train(schedule: str) -> dict:
+    sys.path.insert(0, str(Path.cwd() / "experiments"))
+    from arm_rgcl import CHUNK, make_config  # noqa: E402
+
+    from diffgcl.algorithms.runner import load_demo_batch, train_seeds
+    from diffgcl.envs import make_env
+
+    env = make_env("arm")
+    demos = load_demo_batch(None, env)
+    args = argparse.Namespace(preset="default", set=[], fast=False)
+    config = make_config(args, schedule)
+    result = train_seeds(config, env, demos, range(CHUNK), progress=False)
+    return {"seeds": CHUNK, "iterations": config.iterations, "result": type(result).__name__}
+
+
 def _arm_mdgps() -> dict:
     import dataclasses
 
@@ -192,6 +220,8 @@ def worker(entry: str, jax_cache: str, demos_dir: Path) -> dict:
     _instrument(record)
     if entry in ("arm_v2", "arm_v1"):
         figures = _arm_rgcl(entry[-2:])
+    elif entry in ("arm_v2_train", "arm_v1_train"):
+        figures = _arm_train(entry[4:6])
     elif entry == "arm_mdgps":
         figures = _arm_mdgps()
     elif entry in ("reacher_learn", "cartpole_learn"):
@@ -372,6 +402,8 @@ def summarise(results: dict) -> dict:
             "cartpole_learn_compile_s": ("cartpole_learn", "compile_s"),
             "arm_v2_compile_s": ("arm_v2", "compile_s"),
             "arm_v1_compile_s": ("arm_v1", "compile_s"),
+            "arm_v2_train_compile_s": ("arm_v2_train", "compile_s"),
+            "arm_v1_train_compile_s": ("arm_v1_train", "compile_s"),
             "arm_mdgps_compile_s": ("arm_mdgps", "compile_s"),
             "usv_fast_wall_s": ("usv_fast", "wall_s"),
         }
