@@ -137,10 +137,10 @@ def tasks() -> dict[str, Task]:
 # ---- part 1: the user's expert demos ------------------------------------------------------------
 
 
-def expert_demos(task: Task, path: Path, *, seeds, demos_per_condition: int) -> dict:
-    """GPS on the hand-written cost; demos sampled from the best seed's controllers, saved as
-    an npz of MuJoCo arrays. Returns the expert's summary."""
-    env = api.load_model(
+def expert_env(task: Task):
+    """The task's model with its start states, horizon, hand-written cost and success test: what
+    either expert solves."""
+    return api.load_model(
         task.mjcf,
         x0=np.asarray(task.starts),
         horizon=task.horizon,
@@ -148,6 +148,12 @@ def expert_demos(task: Task, path: Path, *, seeds, demos_per_condition: int) -> 
         cost=task.cost,
         success=task.success,
     )
+
+
+def expert_demos(task: Task, path: Path, *, seeds, demos_per_condition: int) -> dict:
+    """GPS on the hand-written cost; demos sampled from the best seed's controllers, saved as
+    an npz of MuJoCo arrays. Returns the expert's summary."""
+    env = expert_env(task)
     t0 = time.perf_counter()
     result = run_seeds(task.expert, env, task.cost, seeds, chunk=len(seeds))
     m = result["metrics"]
@@ -194,14 +200,7 @@ def ilqr_expert_demos(
 ) -> dict:
     """The expert path of a user with a cost and no demos: ``api.expert_demos`` (iLQR from each
     start state, demos sampled about each solution) with its defaults, saved as the npz."""
-    env = api.load_model(
-        task.mjcf,
-        x0=np.asarray(task.starts),
-        horizon=task.horizon,
-        dt=task.dt,
-        cost=task.cost,
-        success=task.success,
-    )
+    env = expert_env(task)
     t0 = time.perf_counter()
     demos = api.expert_demos(env, per_start=demos_per_condition, noise_var=noise_var, path=path)
     X = jnp.asarray(demos.X)
