@@ -143,6 +143,8 @@ def _arm_rgcl(schedule: str) -> dict:
 
 
 def _arm_train(schedule: str) -> dict:
+    import numpy as np
+
     sys.path.insert(0, str(Path.cwd() / "experiments"))
     from arm_rgcl import CHUNK, make_config  # noqa: E402
 
@@ -154,7 +156,8 @@ def _arm_train(schedule: str) -> dict:
     args = argparse.Namespace(preset="default", set=[], fast=False)
     config = make_config(args, schedule)
     result = train_seeds(config, env, demos, range(CHUNK), progress=False)
-    return {"seeds": CHUNK, "iterations": config.iterations, "result": type(result).__name__}
+    success = float(np.mean(np.asarray(result.metrics.gps.success)[:, -1]))
+    return {"seeds": CHUNK, "iterations": config.iterations, "final_success_rate": success}
 
 
 def _arm_mdgps() -> dict:
