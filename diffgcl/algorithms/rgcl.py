@@ -300,6 +300,25 @@ class RGCLMetrics:
     policy_params: object = None
 
 
+class V1Parts(NamedTuple):
+    """v1's iteration in parts, for a host loop that runs the simulator as programs of its own
+    (:class:`~diffgcl.algorithms.staged.StagedV1Loop`); ``RGCL.run`` traces the same functions
+    into a ``lax.scan`` over the ``gps_iterations`` GPS iterations.
+
+    begin(state, key_loop) -> (carry, keys [G, 2], key_cost); draw(carry, key) -> request;
+    simulate(sim, request) -> the simulator's results; gps(state, carry, key, first, demos,
+    sims) -> (carry, outputs) — ``first``: the phase's first GPS iteration; finish(state, carry,
+    outputs stacked [G], key_cost, demos) -> (state, metrics), the cost update and the guard.
+    """
+
+    begin: Callable
+    draw: Callable
+    simulate: Callable
+    gps: Callable
+    finish: Callable
+    gps_iterations: int
+
+
 class RGCL(NamedTuple):
     """The pure functions of :func:`make_train`.
 
@@ -309,10 +328,10 @@ class RGCL(NamedTuple):
     default_hparams() -> RGCLHyperparams; network: the :class:`CostNetwork`; policy_phases: the
     global policy's :class:`~diffgcl.algorithms.mdgps.PolicyPhases` (None without a policy).
     v2's iteration in parts, for a host loop that runs the simulator as programs of its own
-    (:mod:`diffgcl.algorithms.staged`; None for v1): draw(state, key_loop) -> request,
-    simulate(sim, request) -> the simulator's results, update(state, key_loop, demos, sims) ->
-    (state, metrics) — ``run`` is these three traced into a ``lax.scan``; iterations: the
-    config's.
+    (:mod:`diffgcl.algorithms.staged`; None for v1, whose parts are ``v1``): draw(state,
+    key_loop) -> request, simulate(sim, request) -> the simulator's results, update(state,
+    key_loop, demos, sims) -> (state, metrics) — ``run`` is these three traced into a
+    ``lax.scan``; iterations: the config's.
     """
 
     train: Callable[..., tuple[RGCLState, RGCLMetrics]]
@@ -326,6 +345,7 @@ class RGCL(NamedTuple):
     simulate: Callable | None = None
     update: Callable | None = None
     iterations: int = 0
+    v1: V1Parts | None = None
 
 
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
@@ -724,34 +744,14 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         new = state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy)
         return guard(state, new, metrics)
 
-    def iteration_v1(state: RGCLState, key: PRNGKey, demos: DemoBatch):
+    # v1's iteration in parts, so that a host loop can run its simulator staged
+    # (:class:`diffgcl.algorithms.staged.StagedV1Loop`) and ``iteration_v1`` traces the same
+    # functions into one program: begin -> G x (draw_v1 -> simulate -> gps_v1) -> finish_v1.
+
+    def begin_v1(state: RGCLState, key_loop: PRNGKey):
+        """The carry of v1's GPS phase and its keys: (carry, [G, 2] GPS keys, the cost key)."""
+        key = jax.random.fold_in(key_loop, state.step)
         key_gps, key_cost = jax.random.split(key)
-        params = state.cost.params
-
-        def gps_iteration(carry, inputs):
-            gps, policy, buffer, _, _ = carry
-            key, first = inputs
-            key_sample, key_policy = jax.random.split(key)
-            key_obs, _ = jax.random.split(key_policy)
-            sims = simulate_samples(sim, draw_samples(gps, policy, key_sample, key_obs))
-            samples, anchor, proposal = fit_samples(gps, policy, sims)
-            # Each step is judged under one cost: the one its controller was optimised for (J_prev
-            # and J_pred were expanded with it) — on the first GPS iteration after a cost update,
-            # the cost before that update. The GCL objective does not fix the cost's constant, so
-            # mixing two costs here would let the cost's drift set the step.
-            judged = jax.tree.map(
-                lambda old, new: jnp.where(first, old, new), state.cost.prev_params, params
-            )
-            quad_judged, quad = expand_both(judged, params, samples)
-            step_mult = adapt(state, gps, samples, quad_judged, anchor)
-            buffer = store(buffer, demos, proposal, samples.X, samples.U)
-            new_gps, m = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
-            policy, pm = s_step(policy, key_policy, samples, new_gps, params, sims)
-            lc = window_cost(params, demos, samples)
-            ll = demo_likelihood(new_gps.controller, demos)
-            out = (m, lc, ll, samples.X, pm)
-            return (new_gps, policy, buffer, samples, proposal), out
-
         empty = jax.tree.map(
             lambda s: jnp.zeros(s.shape, s.dtype),
             jax.eval_shape(
@@ -762,9 +762,42 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         carry = batched_like(
             (state.gps, state.policy, state.buffer, empty, state.gps.controller), key
         )
-        (gps, policy, buffer, samples, proposal), (gps_metrics, lc, ll, sample_X, pm) = lax.scan(
-            gps_iteration, carry, (jax.random.split(key_gps, G), jnp.arange(G) == 0)
+        return carry, jax.random.split(key_gps, G), key_cost
+
+    def draw_v1(carry, key: PRNGKey):
+        gps, policy = carry[0], carry[1]
+        key_sample, key_policy = jax.random.split(key)
+        key_obs, _ = jax.random.split(key_policy)
+        return draw_samples(gps, policy, key_sample, key_obs)
+
+    def gps_v1(state: RGCLState, carry, key: PRNGKey, first, demos: DemoBatch, sims):
+        """One GPS iteration of v1's phase on the samples ``sims`` -> (carry, its outputs)."""
+        gps, policy, buffer, _, _ = carry
+        params = state.cost.params
+        _, key_policy = jax.random.split(key)
+        samples, anchor, proposal = fit_samples(gps, policy, sims)
+        # Each step is judged under one cost: the one its controller was optimised for (J_prev
+        # and J_pred were expanded with it) — on the first GPS iteration after a cost update,
+        # the cost before that update. The GCL objective does not fix the cost's constant, so
+        # mixing two costs here would let the cost's drift set the step.
+        judged = jax.tree.map(
+            lambda old, new: jnp.where(first, old, new), state.cost.prev_params, params
         )
+        quad_judged, quad = expand_both(judged, params, samples)
+        step_mult = adapt(state, gps, samples, quad_judged, anchor)
+        buffer = store(buffer, demos, proposal, samples.X, samples.U)
+        new_gps, m = phases.inner(gps, samples, quad, step_mult, anchor=anchor)
+        policy, pm = s_step(policy, key_policy, samples, new_gps, params, sims)
+        lc = window_cost(params, demos, samples)
+        ll = demo_likelihood(new_gps.controller, demos)
+        out = (m, lc, ll, samples.X, pm)
+        return (new_gps, policy, buffer, samples, proposal), out
+
+    def finish_v1(state: RGCLState, carry, outs, key_cost: PRNGKey, demos: DemoBatch):
+        """The cost update after v1's GPS phase (``outs``: its outputs stacked [G]) and the
+        iteration's metrics, counted and guarded."""
+        gps, policy, buffer, samples, proposal = carry
+        gps_metrics, lc, ll, sample_X, pm = outs
         # The model variant generates from the last fitted model and the controller it sampled.
         cost, gcl_metrics, updated = cost_step(
             state, state.cost, key_cost, demos, samples, proposal, buffer
@@ -782,7 +815,19 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             policy=pm,
             policy_params=None if policy is None else policy.params,
         )
-        return state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy), metrics
+        new = state.replace(gps=gps, cost=cost, buffer=buffer, policy=policy)
+        return guard(state, new, metrics)
+
+    def iteration_v1(state: RGCLState, key_loop: PRNGKey, demos: DemoBatch):
+        carry, keys, key_cost = begin_v1(state, key_loop)
+
+        def gps_iteration(carry, inputs):
+            key, first = inputs
+            sims = simulate_samples(sim, draw_v1(carry, key))
+            return gps_v1(state, carry, key, first, demos, sims)
+
+        carry, outs = lax.scan(gps_iteration, carry, (keys, jnp.arange(G) == 0))
+        return finish_v1(state, carry, outs, key_cost, demos)
 
     def guard(state: RGCLState, new: RGCLState, metrics: RGCLMetrics):
         """Count the iteration; with the NaN guard, keep ``state`` when the iteration made a
@@ -801,8 +846,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
             return update_v2(
                 state, key_loop, demos, simulate_samples(sim, draw_v2(state, key_loop))
             )
-        new, metrics = iteration_v1(state, jax.random.fold_in(key_loop, state.step), demos)
-        return guard(state, new, metrics)
+        return iteration_v1(state, key_loop, demos)
 
     def run(state: RGCLState, key_loop: PRNGKey, demos: DemoBatch, n: int):
         return lax.scan(lambda s, _: guarded(s, key_loop, demos), state, None, length=n)
@@ -825,6 +869,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         simulate=simulate_samples if v2 else None,
         update=update_v2 if v2 else None,
         iterations=config.iterations,
+        v1=None if v2 else V1Parts(begin_v1, draw_v1, simulate_samples, gps_v1, finish_v1, G),
     )
 
 

@@ -54,7 +54,7 @@ from diffgcl.algorithms.rgcl import (
     RGCLState,
     make_train,
 )
-from diffgcl.algorithms.staged import StagedLoop, can_stage, staged_simulator
+from diffgcl.algorithms.staged import can_stage, rgcl_loop
 from diffgcl.distributed import check_same_everywhere, compile_program, is_leader, to_host
 from diffgcl.runtime import CompileClock
 from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
@@ -177,8 +177,8 @@ def train_seeds(
     crash_after: raise :class:`SimulatedCrash` once this many iterations are done (tests).
     staged: run the iterations as a host loop over the jitted draw and update programs with the
     env's staged simulator (:mod:`diffgcl.algorithms.staged`; the same results, the simulator
-    compiled once for every program of the process) — default: for v2 in one process; else each
-    chunk of iterations is one traced program.
+    compiled once for every program of the process) — default: in one process; else each chunk
+    of iterations is one traced program.
     """
     seeds = [int(s) for s in seeds]
     S = len(seeds)
@@ -205,19 +205,8 @@ def train_seeds(
     programs: dict[int, object] = {}
     compile_seconds = 0.0
     if staged is None:
-        staged = rgcl.update is not None and can_stage()
-    if staged and rgcl.update is None:
-        raise ValueError(f"train_seeds: schedule {config.schedule} has no staged iteration")
-    loop = None
-    if staged:
-        loop = StagedLoop(
-            rgcl.draw,
-            rgcl.simulate,
-            rgcl.update,
-            staged_simulator(env),
-            draw_axes=(0,),
-            update_axes=(0, None),
-        )
+        staged = can_stage()
+    loop = rgcl_loop(rgcl, env) if staged else None
 
     def chunk_fn(n: int):
         nonlocal compile_seconds

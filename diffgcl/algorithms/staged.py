@@ -122,23 +122,64 @@ def run_gps_seeds(gps, keys, iterations: int, env, update_args=(), update_axes=(
     return state, stack_metrics(metrics), X
 
 
+class StagedV1Loop:
+    """rGCL v1's iterations for a batch of seeds as a host loop (the interface of
+    :class:`StagedLoop`: ``run(state, n, draw_args=(key_loop,), update_args=(key_loop,
+    demos))``): per iteration ``begin``, then ``G`` times ``draw`` -> the staged simulator ->
+    ``gps``, then ``finish`` (the cost update), each jitted over the seeds
+    (:class:`~diffgcl.algorithms.rgcl.V1Parts`)."""
+
+    def __init__(self, parts, sim: Simulator):
+        self.parts, self.sim = parts, sim
+        self.begin = jax.jit(vmap_over_devices(parts.begin, in_axes=(0, 0)))
+        self.draw = jax.jit(vmap_over_devices(parts.draw, in_axes=(0, 0)))
+        self.gps = jax.jit(vmap_over_devices(parts.gps, in_axes=(0, 0, 0, None, None, 0)))
+        self.finish = jax.jit(vmap_over_devices(parts.finish, in_axes=(0, 0, 0, 0, None)))
+
+    def step(self, state, draw_args=(), update_args=()):
+        import jax.numpy as jnp
+
+        (key_loop,), (_, demos) = draw_args, update_args
+        carry, keys, key_cost = self.begin(state, key_loop)
+        outs = []
+        for g in range(self.parts.gps_iterations):
+            key = keys[:, g]
+            sims = self.parts.simulate(self.sim, self.draw(carry, key))
+            carry, out = self.gps(state, carry, key, np.bool_(g == 0), demos, sims)
+            outs.append(out)
+        outs = jax.tree.map(lambda *a: jnp.stack(a, axis=1), *outs)
+        return self.finish(state, carry, outs, key_cost, demos)
+
+    def run(self, state, n: int, draw_args=(), update_args=()):
+        """(state, metrics [S, n, ...] as NumPy) after ``n`` iterations."""
+        metrics = []
+        for _ in range(n):
+            state, m = self.step(state, draw_args, update_args)
+            metrics.append(m)
+        return state, stack_metrics(metrics)
+
+
+def rgcl_loop(rgcl, env) -> StagedLoop | StagedV1Loop:
+    """The staged host loop of an rGCL run (``rgcl`` from
+    :func:`~diffgcl.algorithms.rgcl.make_train`), v1's or v2's, on ``env``'s staged simulator:
+    ``run(state, n, draw_args=(key_loop,), update_args=(key_loop, demos))``."""
+    sim = staged_simulator(env)
+    if rgcl.v1 is not None:
+        return StagedV1Loop(rgcl.v1, sim)
+    return StagedLoop(rgcl.draw, rgcl.simulate, rgcl.update, sim, (0,), (0, None))
+
+
 def run_rgcl(rgcl, keys, demos, env, hparams=None):
     """rGCL for a batch of seeds (``keys: [S, 2]``, ``rgcl`` from
-    :func:`~diffgcl.algorithms.rgcl.make_train`): v2 as a staged loop, v1 (no staged iteration)
-    as one traced program. The same results as ``jax.vmap(rgcl.train, in_axes=(0, None))``:
-    (state, metrics [S, iterations, ...])."""
-    if rgcl.update is None:
-        train = jax.jit(vmap_over_devices(rgcl.train, in_axes=(0, None, 0)))
-        if hparams is None:
-            hp = rgcl.default_hparams()
-            hparams = jax.tree.map(lambda a: np.broadcast_to(a, (keys.shape[0],)), hp)
-        return train(keys, demos, hparams)
+    :func:`~diffgcl.algorithms.rgcl.make_train`) as a staged loop (:func:`rgcl_loop`). The same
+    results as ``jax.vmap(rgcl.train, in_axes=(0, None))``: (state, metrics [S, iterations,
+    ...])."""
     key_init, key_loop = jax.jit(jax.vmap(rgcl.split_key))(keys)
     if hparams is None:
         hp = rgcl.default_hparams()
         hparams = jax.tree.map(lambda a: np.broadcast_to(a, (keys.shape[0],)), hp)
     state = jax.jit(vmap_over_devices(rgcl.init, in_axes=(0, None, 0)))(key_init, demos, hparams)
-    loop = StagedLoop(rgcl.draw, rgcl.simulate, rgcl.update, staged_simulator(env), (0,), (0, None))
+    loop = rgcl_loop(rgcl, env)
     return loop.run(state, rgcl.iterations, draw_args=(key_loop,), update_args=(key_loop, demos))
 
 
