@@ -335,6 +335,39 @@ def test_neural_cost_is_zero_at_the_goal_and_reads_bounded_features():
         CostNetwork(usv_neural().network, usv.dX, usv.dU)
 
 
+def test_shape_only_neural_cost_has_a_fixed_scale():
+    """``network.shape_only``: the same network's cost does not change when ``A`` is scaled, nor
+    when the hidden layers' output grows (tanh-bounded features), stays zero at the goal, and
+    never exceeds ``‖Â‖_F² · max‖tanh y − tanh y*‖² = (a_scale² F)(4F)`` per step."""
+    import dataclasses
+
+    from diffgcl.algorithms.presets import usv_neural
+    from diffgcl.algorithms.rgcl import make_network
+
+    usv = make_usv_env(horizon=10)
+    config = usv_neural()
+    config = dataclasses.replace(
+        config, network=dataclasses.replace(config.network, shape_only=True)
+    )
+    net = make_network(config, usv)
+    params = net.init(jax.random.PRNGKey(0))
+    params = params.replace(norm=net.fit_normaliser(usv.initial_states()))
+    x = usv.initial_states()[0]
+    c = float(net.state_cost(params, x))
+    assert c > 0.0
+    assert float(net.state_cost(params, usv.cost_goal_state())) == 0.0
+    scaled = params.replace(net={**params.net, "A": 10.0 * params.net["A"]})
+    np.testing.assert_allclose(float(net.state_cost(scaled, x)), c, rtol=1e-5)
+    # Every weight matrix ×100: the features saturate, the cost stays under its bound.
+    grown = params.replace(net=jax.tree.map(lambda a: 100.0 * a if a.ndim == 2 else a, params.net))
+    F = params.net["A"].shape[0]
+    bound = config.network.a_scale**2 * F * 4 * F
+    for x in usv.initial_states():
+        assert 0.0 <= float(net.state_cost(grown, x)) <= bound * float(net.temperature(grown))
+    with pytest.raises(ValueError, match="shape_only"):
+        dataclasses.replace(config.network, form="weighted")
+
+
 def test_two_pole_env_sees_and_collides_with_both_poles():
     """The judging env with a second pole further down the course: the hull moves as in the
     one-pole env, the beams read the nearer pole, the clearance is to the nearer pole, and the

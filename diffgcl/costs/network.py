@@ -109,7 +109,11 @@ class CostNetworkConfig:
     weighted form its ``cost_residuals(x)``; form: ``"gram"`` (``‖A y + b‖²``, the paper's),
     ``"neural"`` (``‖A (y − y*)‖²``, the Gram form anchored at the network's ``goal_state``) or
     ``"weighted"`` (learned non-negative weights on squared residuals; module docstring; hidden,
-    n_features, identity_init, linear_skip, time_input and a_scale are unused).
+    n_features, identity_init, linear_skip, time_input and a_scale are unused); shape_only (the
+    ``"neural"`` form): the network learns the cost's shape and not its scale, as the weighted
+    form learns only its weights' ratios — ``‖Â (tanh y − tanh y*)‖²`` with ``Â = A`` rescaled
+    to the Frobenius norm ``a_scale·√F`` it starts near, so each step's cost is bounded and
+    the temperature alone sets the scale.
     """
 
     hidden: tuple[int, ...] = (32, 32)
@@ -124,6 +128,7 @@ class CostNetworkConfig:
     a_scale: float = 1.0
     features: str = "state"
     form: str = "gram"
+    shape_only: bool = False
 
     def __post_init__(self):
         if self.form not in ("gram", "neural", "weighted"):
@@ -131,6 +136,10 @@ class CostNetworkConfig:
                 f"CostNetworkConfig: form {self.form!r}; 'gram' (‖A y + b‖²), 'neural' "
                 "(‖A (y − y*)‖², zero at a goal) or 'weighted' (learned weights on squared "
                 "residuals)"
+            )
+        if self.shape_only and self.form != "neural":
+            raise ValueError(
+                f"CostNetworkConfig: shape_only is for form 'neural', not {self.form!r}"
             )
         if self.features not in ("state", "env"):
             raise ValueError(
@@ -417,7 +426,11 @@ class CostNetwork:
         if self.config.form == "neural":
             goal = self.state_input(jnp.asarray(self.goal_state, f.dtype))
             y_goal = self._apply_features(params, self._network_input_of(params, goal, t))
-            return params.net["A"] @ (self._apply_features(params, z) - y_goal)
+            y, A = self._apply_features(params, z), params.net["A"]
+            if self.config.shape_only:
+                y, y_goal = jnp.tanh(y), jnp.tanh(y_goal)
+                A = A * (self.config.a_scale * jnp.sqrt(A.shape[0]) / jnp.linalg.norm(A))
+            return A @ (y - y_goal)
         if self.is_affine:
             M, m = self.affine_residual_map(params)
             return M @ z + m
