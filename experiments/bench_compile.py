@@ -7,8 +7,8 @@ Entry points (``--entries``, default all):
   ``experiments/arm_rgcl.py`` (compiled and run once);
 * ``arm_v2_train``, ``arm_v1_train`` — the same 32 seeds through
   :func:`diffgcl.algorithms.runner.train_seeds`, the runner behind ``diffgcl train`` and the API
-  (v2 staged: the simulator's programs shared, small draw and update programs; v1 one traced
-  program per chunk of iterations), run to the end;
+  (staged: the simulator's programs shared, small programs without physics for the rest of
+  an iteration), run to the end;
 * ``arm_mdgps`` — rGCL v2 with a global policy (MDGPS) on the arm's four training starts of
   ``experiments/arm_policy.py`` (2 seeds, 10 iterations);
 * ``reacher_learn``, ``cartpole_learn`` — the ten lines of :mod:`diffgcl.api` on
