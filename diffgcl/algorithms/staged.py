@@ -122,14 +122,14 @@ def run_gps_seeds(gps, keys, iterations: int, env, update_args=(), update_axes=(
     return state, stack_metrics(metrics), X
 
 
-class StagedV1Loop:
-    """rGCL v1's iterations for a batch of seeds as a host loop (the interface of
-    :class:`StagedLoop`: ``run(state, n, draw_args=(key_loop,), update_args=(key_loop,
-    demos))``): per iteration ``begin``, then ``G`` times ``draw`` -> the staged simulator ->
-    ``gps``, then ``finish`` (the cost update), each jitted over the seeds
+class StagedV1Loop(StagedLoop):
+    """rGCL v1's iterations for a batch of seeds as a host loop (:class:`StagedLoop`'s ``run``,
+    with ``draw_args=(key_loop,)`` and ``update_args=(key_loop, demos)``); one iteration (its
+    ``step``) is ``begin``, then ``G`` times ``draw`` -> the staged simulator -> ``gps``, then
+    ``finish`` (the cost update), each jitted over the seeds
     (:class:`~diffgcl.algorithms.rgcl.V1Parts`)."""
 
-    def __init__(self, parts, sim: Simulator):
+    def __init__(self, parts, sim: Simulator):  # the parts replace StagedLoop's draw and update
         self.parts, self.sim = parts, sim
         self.begin = jax.jit(vmap_over_devices(parts.begin, in_axes=(0, 0)))
         self.draw = jax.jit(vmap_over_devices(parts.draw, in_axes=(0, 0)))
@@ -150,16 +150,8 @@ class StagedV1Loop:
         outs = jax.tree.map(lambda *a: jnp.stack(a, axis=1), *outs)
         return self.finish(state, carry, outs, key_cost, demos)
 
-    def run(self, state, n: int, draw_args=(), update_args=()):
-        """(state, metrics [S, n, ...] as NumPy) after ``n`` iterations."""
-        metrics = []
-        for _ in range(n):
-            state, m = self.step(state, draw_args, update_args)
-            metrics.append(m)
-        return state, stack_metrics(metrics)
 
-
-def rgcl_loop(rgcl, env) -> StagedLoop | StagedV1Loop:
+def rgcl_loop(rgcl, env) -> StagedLoop:
     """The staged host loop of an rGCL run (``rgcl`` from
     :func:`~diffgcl.algorithms.rgcl.make_train`), v1's or v2's, on ``env``'s staged simulator:
     ``run(state, n, draw_args=(key_loop,), update_args=(key_loop, demos))``."""
