@@ -119,6 +119,17 @@ class SimulatedPolicy:
     mean: Trajectory
 
 
+class InitialSamples(NamedTuple):
+    """The initial controllers' samples whose observations fit the policy's normaliser:
+    controller [C, N, T, ...], x0 [C, N, dX], noise [C, N, T, dU], obs_keys [C, N, T+1, 2]
+    (None without ``obs_noise``)."""
+
+    controller: LinearGaussianController
+    x0: Array
+    noise: Array
+    obs_keys: Array | None
+
+
 class PolicyPhases(NamedTuple):
     """The policy's part of an iteration on an env (pure; C conditions at once).
 
@@ -132,7 +143,10 @@ class PolicyPhases(NamedTuple):
     s_step(state, key, X, O, controllers) -> (PolicyState, SStepMetrics); rollouts(state, x0) ->
     Trajectory [B] noise-free from starts ``x0: [B, dX]``; metrics(mean, s_step_metrics) ->
     PolicyMetrics from the noise-free rollouts ``mean`` [C]; policy: the :class:`GaussianPolicy`;
-    act(params, o, eps): its action; name: what tells its simulator programs apart.
+    act(params, o, eps): its action; name: what tells its simulator programs apart;
+    initial_samples(key) -> :class:`InitialSamples` and observe_initial(sim, samples) -> O: what
+    ``init(key)`` without observations draws and observes, for a host loop that simulates them
+    with a staged simulator and passes the observations in (``init(key, O)``, the same state).
     """
 
     init: Callable[..., PolicyState]
@@ -148,6 +162,8 @@ class PolicyPhases(NamedTuple):
     policy: GaussianPolicy
     act: Callable
     name: tuple
+    initial_samples: Callable[[PRNGKey], InitialSamples]
+    observe_initial: Callable[..., Array]
 
 
 def make_policy(settings: PolicySettings, env: Env) -> GaussianPolicy:
@@ -229,15 +245,25 @@ def make_policy_phases(
     def observe_at(sim: Simulator, X: Array) -> tuple[Array, Array]:
         return sim.observation_jacobians(X[..., :-1, :])
 
+    def initial_samples(key: PRNGKey) -> InitialSamples:
+        """The initial controllers' N noisy samples per condition that ``init(key)`` observes
+        (what they are, not yet simulated: ``observe_initial`` runs them)."""
+        _, key_samples, key_obs = jax.random.split(key, 3)
+        ctrl = init_controller(T, env.dX, dU, gps_config.init_var, dtype=X0.dtype)
+        ctrl = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, N, *a.shape)), ctrl)
+        noise = jax.vmap(lambda k: noise_of(k, N))(jax.random.split(key_samples, C))
+        x0 = jnp.broadcast_to(X0[:, None], (C, N, env.dX))
+        return InitialSamples(ctrl, x0, noise, observation_keys(key_obs, (C, N, T + 1)))
+
+    def observe_initial(sim: Simulator, samples: InitialSamples) -> Array:
+        """O [..., C, N, T+1, dO]: what the policy sees along ``samples`` (any leading axes)."""
+        X = sim.controller_rollouts(samples.controller, samples.x0, samples.noise).X
+        return observe(sim, X, samples.obs_keys)
+
     def init(key: PRNGKey, O: Array | None = None) -> PolicyState:
-        key_net, key_samples, key_obs = jax.random.split(key, 3)
+        key_net = jax.random.split(key, 3)[0]
         if O is None:
-            ctrl = init_controller(T, env.dX, dU, gps_config.init_var, dtype=X0.dtype)
-            ctrl = jax.tree.map(lambda a: jnp.broadcast_to(a, (C, N, *a.shape)), ctrl)
-            noise = jax.vmap(lambda k: noise_of(k, N))(jax.random.split(key_samples, C))
-            x0 = jnp.broadcast_to(X0[:, None], (C, N, env.dX))
-            X = sim.controller_rollouts(ctrl, x0, noise).X
-            O = observe(sim, X, observation_keys(key_obs, X.shape[:-1]))
+            O = observe_initial(sim, initial_samples(key))
         net = settings.network
         norm = fit_obs_normaliser(O, net.obs_std_floor, rel_floor=net.obs_std_rel_floor)
         return learner.init(policy.init(key_net, norm))
@@ -315,6 +341,8 @@ def make_policy_phases(
         policy=policy,
         act=act,
         name=name,
+        initial_samples=initial_samples,
+        observe_initial=observe_initial,
     )
 
 
@@ -349,7 +377,8 @@ class MDGPSMetrics:
 
 
 class MDGPS(NamedTuple):
-    """The pure functions of :func:`make_mdgps`: init(key, hparams=None) -> MDGPSState;
+    """The pure functions of :func:`make_mdgps`: init(key, hparams=None, O=None) -> MDGPSState
+    (``O``: the observations of ``initial_samples(key)``, else simulated inside);
     iteration(state, key) -> (state, metrics), which is ``update(state, key, simulate(sim,
     draw(state, key)))``; train(key, hparams=None) -> (state, metrics [iterations]);
     policy_phases: the :class:`PolicyPhases` (policy, rollouts)."""
@@ -362,6 +391,9 @@ class MDGPS(NamedTuple):
     simulate: Callable[..., MDGPSSimulated]
     update: Callable[..., tuple[MDGPSState, MDGPSMetrics]]
     keyed: bool = True  # update(state, key, sims): the S-step draws from the iteration's key
+    # What init(key) simulates to fit the policy's normaliser; a host loop simulates it staged
+    # and calls init(key, hparams, O) (diffgcl.algorithms.staged.run_gps_seeds).
+    initial_samples: Callable[[PRNGKey], InitialSamples] | None = None
 
 
 @struct.dataclass
@@ -465,9 +497,15 @@ def make_mdgps(
         phases, policy_phases, config.policy, config.gps.num_samples
     )
 
-    def init(key: PRNGKey, hparams: GPSHyperparams | None = None) -> MDGPSState:
+    def init(
+        key: PRNGKey, hparams: GPSHyperparams | None = None, O: Array | None = None
+    ) -> MDGPSState:
         key_gps, key_policy = jax.random.split(key)
-        return MDGPSState(gps=phases.init(key_gps, hparams), policy=policy_phases.init(key_policy))
+        policy = policy_phases.init(key_policy, O)
+        return MDGPSState(gps=phases.init(key_gps, hparams), policy=policy)
+
+    def initial_samples(key: PRNGKey) -> InitialSamples:
+        return policy_phases.initial_samples(jax.random.split(key)[1])
 
     def draw(state: MDGPSState, key: PRNGKey) -> MDGPSRequest:
         key_sample, key_obs, _ = jax.random.split(key, 3)
@@ -504,4 +542,5 @@ def make_mdgps(
         draw=draw,
         simulate=simulate,
         update=update,
+        initial_samples=initial_samples,
     )

@@ -17,6 +17,7 @@ outputs passing through host memory.
 
 from __future__ import annotations
 
+import functools
 import weakref
 
 import jax
@@ -95,8 +96,10 @@ def run_gps_seeds(gps, keys, iterations: int, env, update_args=(), update_axes=(
     ``jax.vmap(gps.train)``): ``gps`` has ``init(key[, hparams])``, ``draw(state, key)``,
     ``simulate(sim, request)`` and ``update(state, *update_args, sims)`` (or, with a ``keyed``
     attribute that is true, ``update(state, key, *update_args, sims)`` with the iteration's
-    key); ``keys: [S, 2]`` (split into the init key and one key per iteration as ``train``
-    does). Returns (state, metrics [S, iterations, ...], X_final [S, C, T+1, dX]: the final
+    key); with an ``initial_samples`` attribute (MDGPS), the samples ``init`` would simulate
+    run on the staged simulator and their observations go to ``init(key, hparams, O)``;
+    ``keys: [S, 2]`` (split into the init key and one key per iteration as ``train`` does).
+    Returns (state, metrics [S, iterations, ...], X_final [S, C, T+1, dX]: the final
     controllers' noise-free rollouts)."""
     import jax.numpy as jnp
 
@@ -105,13 +108,22 @@ def run_gps_seeds(gps, keys, iterations: int, env, update_args=(), update_axes=(
         return key_init, jax.random.split(key_iter, iterations)
 
     key_init, key_iter = jax.jit(jax.vmap(split))(keys)
-    if hparams is None:
-        state = jax.jit(jax.vmap(lambda k: gps.init(k)))(key_init)
-    else:
-        state = jax.jit(jax.vmap(gps.init))(key_init, hparams)
+    sim = staged_simulator(env)
+    initial_samples = getattr(gps, "initial_samples", None)
+    if initial_samples is None:
+        init = (lambda k, hp: gps.init(k)) if hparams is None else gps.init
+        init_args = ()
+    else:  # MDGPS: the policy's first observations through the staged simulator
+        samples = jax.jit(jax.vmap(initial_samples))(key_init)
+        init = (lambda k, hp, O: gps.init(k, None, O)) if hparams is None else gps.init
+        init_args = (gps.policy_phases.observe_initial(sim, samples),)
+    hp_axis = None if hparams is None else 0
+    state = jax.jit(jax.vmap(init, in_axes=(0, hp_axis) + (0,) * len(init_args)))(
+        key_init, hparams, *init_args
+    )
     keyed = getattr(gps, "keyed", False)
     axes = ((0,) if keyed else ()) + tuple(update_axes)
-    loop = StagedLoop(gps.draw, gps.simulate, gps.update, staged_simulator(env), (0,), axes)
+    loop = StagedLoop(gps.draw, gps.simulate, gps.update, sim, (0,), axes)
     metrics = []
     for i in range(iterations):
         args = ((key_iter[:, i],) if keyed else ()) + tuple(update_args)
@@ -175,6 +187,17 @@ def run_rgcl(rgcl, keys, demos, env, hparams=None):
     return loop.run(state, rgcl.iterations, draw_args=(key_loop,), update_args=(key_loop, demos))
 
 
+@functools.partial(jax.jit, static_argnums=1)
+def _rollout_obs_keys(keys, n: int):
+    """[S, n, 2]: the sensor-noise keys of ``n`` rollouts per seed key (``keys: [S, 2]``)."""
+
+    def per_seed(key):
+        _, key_obs = jax.random.split(key)
+        return jax.random.split(key_obs, n)
+
+    return jax.vmap(per_seed)(keys)
+
+
 def policy_rollouts(env, policy, params, x0, keys=None, *, obs_noise: bool = False):
     """Host side: noise-free-action rollouts [S, B] of global policies (``params`` with a
     leading seed axis S) from ``x0: [B, dX]`` with the env's staged simulator; with
@@ -192,11 +215,7 @@ def policy_rollouts(env, policy, params, x0, keys=None, *, obs_noise: bool = Fal
         if keys is None:
             raise ValueError("policy_rollouts: sensor noise needs one key per seed")
 
-        def per_rollout(key):
-            _, key_obs = jax.random.split(key)
-            return jax.random.split(key_obs, B)
-
-        obs_key = jax.jit(jax.vmap(per_rollout))(keys)
+        obs_key = _rollout_obs_keys(keys, B)
     sim = staged_simulator(env)
     return sim.policy_rollouts(
         policy.sample_action, params, x0, zeros, obs_key, shared=1, name=("policy", policy)

@@ -292,8 +292,9 @@ def run_usv(
     if config.wider:
         wide = ranges.widened(config.wider_radius, config.wider_offset_scale)
         key_wide = jax.random.fold_in(jax.random.PRNGKey(config.heldout_seed), WIDER_FOLD)
-        x0_wide = np.asarray(heldout_starts(probe, wide, key_wide, config.heldout))
-        wider = (dataclasses.replace(probe, x0=jnp.asarray(x0_wide, probe.x0.dtype)), wide)
+        # Rolled out and judged by env_true (the same hull, horizon and metrics; its staged
+        # simulator's programs serve both): only the starts differ.
+        wider = (np.asarray(heldout_starts(probe, wide, key_wide, config.heldout)), wide)
     demo_score = score_rollouts(env, task_demos.X, task_demos.X)
     summary["demos"] = {
         k: demo_score[k]
@@ -338,7 +339,7 @@ def run_usv(
         run.policies[name] = (policy, params)
         run.tracks[name] = tracks
         if wider is not None:
-            _, wide = scored(wider[0], np.asarray(wider[0].x0))
+            _, wide = scored(env_true, wider[0])
             score["wider"] = wide
         if env_two is not None:
             _, two = scored(env_two, np.asarray(env_two.x0), demo_env=env_true)

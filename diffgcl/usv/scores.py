@@ -4,6 +4,8 @@ and its ratio to the demos', back on course, side passed, path distance to the n
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -24,9 +26,15 @@ def path_distance_to_demos(X: np.ndarray, demo_X: np.ndarray) -> np.ndarray:
     return out
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _batch_metrics(env: UsvEnv, X):
+    return jax.vmap(env.metrics)(X)
+
+
 def trajectory_metrics(env: UsvEnv, X) -> dict[str, np.ndarray]:
-    """:meth:`UsvEnv.metrics` of each rollout ``X: [B, T+1, 11]``, as NumPy arrays [B]."""
-    return {k: np.asarray(v) for k, v in jax.jit(jax.vmap(env.metrics))(jnp.asarray(X)).items()}
+    """:meth:`UsvEnv.metrics` of each rollout ``X: [B, T+1, 11]``, as NumPy arrays [B] (one
+    compiled program per env and batch shape, however often it is called)."""
+    return {k: np.asarray(v) for k, v in _batch_metrics(env, jnp.asarray(X)).items()}
 
 
 def straight_side(X) -> np.ndarray:
