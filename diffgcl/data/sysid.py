@@ -225,10 +225,13 @@ def make_identify(config: SysIdConfig):
             params = with_factors(base, fields, theta)
             return shooting_residuals(params, win, scale, weight, model, config.step)
 
+        def residuals_twice(theta):  # (r, r): jacfwd's aux is its primal, traced once
+            r = residuals(theta)
+            return r, r
+
         def step(carry, _):
             theta, state = carry
-            r = residuals(theta)
-            J = jax.jacfwd(residuals)(theta)
+            J, r = jax.jacfwd(residuals_twice, has_aux=True)(theta)
             grad = J.T @ r / r.size
             if config.method == "adam":
                 direction = grad
