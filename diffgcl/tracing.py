@@ -1,4 +1,5 @@
-"""Cheaper tracing of ``vmap`` over loops: a loop carry that is batched from the start.
+"""Smaller traced programs: a loop carry batched from the start, a value and its Jacobian from
+one trace.
 
 Under ``jax.vmap``, ``lax.scan`` (and ``fori_loop``/``while_loop``) must find which parts of its
 carry are batched: it batches the loop body with the initial carry's pattern, and when the body
@@ -13,6 +14,11 @@ batch took 14.2 s instead of 24.1 s.
 vmapped function) to every array leaf. Outside ``vmap`` it is the identity (``x + 0`` for every
 finite and non-finite value but ``−0.0``, which becomes ``+0.0``); inside, every leaf carries the
 key's batch axis.
+
+``f(x)`` beside ``jax.jacfwd(f)(x)`` puts ``f`` in the program twice: once alone and once as
+the primal of the Jacobian's JVP, and XLA compiles both. :func:`value_and_jacfwd` returns the
+JVP's primal instead (the hull identification's program: 9,594 → 6,210 operations, the same
+fit).
 """
 
 from __future__ import annotations
@@ -41,3 +47,18 @@ def batched_like(tree, key):
         return a + zero.astype(a.dtype)
 
     return jax.tree.map(one, tree)
+
+
+def value_and_jacfwd(fun):
+    """``x -> (fun(x), ∂fun/∂x)`` (forward mode, ``jax.jacfwd``'s layout), ``fun`` traced once:
+    the value is the Jacobian's primal (module docstring). ``fun`` may return a pytree."""
+
+    def twice(x):
+        y = fun(x)
+        return y, y
+
+    def both(x):
+        jac, y = jax.jacfwd(twice, has_aux=True)(x)
+        return y, jac
+
+    return both

@@ -71,3 +71,25 @@ def test_a_vmapped_scan_batches_its_body_once():
     out = jax.vmap(lambda k: run(k, True))(keys)
     ref = jax.vmap(lambda k: run(k, False))(keys)
     np.testing.assert_array_equal(out, ref)
+
+
+def test_value_and_jacfwd_equals_the_value_and_jacfwd_apart_from_one_trace():
+    """A pytree-valued function: the same value and Jacobian as ``f(x)`` and ``jax.jacfwd(f)(x)``,
+    with ``f``'s own equations in the program once instead of twice."""
+    from diffgcl.tracing import value_and_jacfwd
+
+    def f(x):
+        return {"a": jnp.sin(x) * x[0], "b": jnp.sum(jnp.exp(x) ** 2)}
+
+    x = jnp.array([0.3, -1.2, 2.0])
+    value, jac = value_and_jacfwd(f)(x)
+    want_value, want_jac = f(x), jax.jacfwd(f)(x)
+    got, want = jax.tree.leaves((value, jac)), jax.tree.leaves((want_value, want_jac))
+    for a, b in zip(got, want, strict=True):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12)
+
+    def count(fn):
+        return len(jax.make_jaxpr(fn)(x).jaxpr.eqns)
+
+    apart = count(lambda x: (f(x), jax.jacfwd(f)(x)))
+    assert count(value_and_jacfwd(f)) < apart

@@ -68,6 +68,7 @@ from diffgcl.costs.expansion import (
     trajectory_cost,
 )
 from diffgcl.dynamics.autodiff import linearize, linearize_trajectory
+from diffgcl.tracing import value_and_jacfwd
 from diffgcl.types import Array, CostFn, LinearGaussianController, QuadraticCost, make_controller
 
 StepFn = Callable[[Array, Array], Array]
@@ -481,8 +482,8 @@ def cost_minimiser(
     eye = jnp.eye(x_init.shape[-1], dtype=x_init.dtype)
 
     def newton(x, _):
-        g = jax.grad(f)(x)
-        H = linalg.symmetrise(jax.hessian(f)(x))
+        g, H = value_and_jacfwd(jax.grad(f))(x)
+        H = linalg.symmetrise(H)
         H = H + 1e-6 * (1.0 + jnp.max(jnp.abs(jnp.diagonal(H)))) * eye
         L = linalg.cholesky(H)
         pd = jnp.all(jnp.isfinite(L)) & jnp.all(jnp.diagonal(L) > 0)

@@ -22,6 +22,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from diffgcl.tracing import value_and_jacfwd
 from diffgcl.types import Array, CostFn, QuadraticCost
 
 ResidualFn = CostFn  # r(x: [dX], u: [dU], t) -> [dR]
@@ -34,8 +35,7 @@ def _expand_step(cost_fn: CostFn, x: Array, u: Array, t: Array):
         return cost_fn(z[:dX], z[dX:], t)
 
     z = jnp.concatenate([x, u])
-    val, grad = jax.value_and_grad(f)(z)
-    hess = jax.hessian(f)(z)
+    (val, grad), (_, hess) = value_and_jacfwd(jax.value_and_grad(f))(z)
     return val, grad, 0.5 * (hess + hess.T)
 
 
@@ -46,8 +46,7 @@ def _expand_residual_step(residual_fn: ResidualFn, x: Array, u: Array, t: Array)
         return residual_fn(z[:dX], z[dX:], t)
 
     z = jnp.concatenate([x, u])
-    res = r(z)
-    J = jax.jacfwd(r)(z)  # [dR, dZ]
+    res, J = value_and_jacfwd(r)(z)  # [dR], [dR, dZ]
     return res @ res, 2.0 * J.T @ res, 2.0 * J.T @ J
 
 

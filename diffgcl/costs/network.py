@@ -66,6 +66,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from diffgcl.costs.expansion import expand_cost, expand_residual_cost
+from diffgcl.tracing import value_and_jacfwd
 from diffgcl.types import Array, CostFn, PRNGKey, QuadraticCost
 
 
@@ -396,8 +397,7 @@ class CostNetwork:
         if not self.is_affine:
             raise ValueError(f"the feature network has hidden layers {self.config.hidden}")
         z0 = jnp.zeros(self._input_dim(), params.net["A"].dtype)
-        y0 = self._apply_features(params, z0)
-        J = jax.jacfwd(lambda z: self._apply_features(params, z))(z0)
+        y0, J = value_and_jacfwd(lambda z: self._apply_features(params, z))(z0)
         A = params.net["A"]
         return A @ J, A @ y0 + params.net["b"]
 

@@ -36,6 +36,7 @@ import optax
 
 from diffgcl.data.demos import DemoSet
 from diffgcl.sim import hull
+from diffgcl.tracing import value_and_jacfwd
 
 SYSID_FIELDS: tuple[str, ...] = (
     "inertia_scale",
@@ -225,13 +226,9 @@ def make_identify(config: SysIdConfig):
             params = with_factors(base, fields, theta)
             return shooting_residuals(params, win, scale, weight, model, config.step)
 
-        def residuals_twice(theta):  # (r, r): jacfwd's aux is its primal, traced once
-            r = residuals(theta)
-            return r, r
-
         def step(carry, _):
             theta, state = carry
-            J, r = jax.jacfwd(residuals_twice, has_aux=True)(theta)
+            r, J = value_and_jacfwd(residuals)(theta)
             grad = J.T @ r / r.size
             if config.method == "adam":
                 direction = grad

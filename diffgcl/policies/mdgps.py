@@ -41,6 +41,7 @@ import optax
 from flax import struct
 
 from diffgcl.policies.network import GaussianPolicy, PolicyParams
+from diffgcl.tracing import value_and_jacfwd
 from diffgcl.types import Array, LinearGaussianController, PRNGKey, make_controller
 
 
@@ -134,7 +135,7 @@ def linearise_policy(
     :func:`linearise_policy_at` is the same from the observations and their Jacobians, which the
     simulator computes (the algorithms use that one)."""
     states = X[:, :-1]
-    O, J = jax.vmap(jax.vmap(lambda x: (obs_fn(x), jax.jacfwd(obs_fn)(x))))(states)
+    O, J = jax.vmap(jax.vmap(value_and_jacfwd(obs_fn)))(states)
     return linearise_policy_at(policy, params, O, J, X)
 
 
@@ -146,8 +147,8 @@ def linearise_policy_at(
     condition's sample states ``X: [N, T+1, dX]`` (states 0 .. T−1). Returns fields [T, ...]."""
 
     def at_obs(o, J_o):
-        act = lambda o: policy.mean_action(params, o)
-        return act(o), jax.jacfwd(act)(o) @ J_o
+        u, du_do = value_and_jacfwd(lambda o: policy.mean_action(params, o))(o)
+        return u, du_do @ J_o
 
     u, K_all = jax.vmap(jax.vmap(at_obs))(O, J)  # [N, T, dU], [N, T, dU, dX]
     K = K_all.mean(axis=0)

@@ -34,6 +34,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import lax
 
+from diffgcl.tracing import value_and_jacfwd
 from diffgcl.types import Array, Env, LinearGaussianController, Trajectory
 
 # ---- kernels for one instance -------------------------------------------------------------------
@@ -198,9 +199,7 @@ class Simulator:
         [..., dO, dX]."""
         env = self.env
 
-        def kernel(x):
-            return env.obs(x), jax.jacfwd(env.obs)(x)
-
+        kernel = value_and_jacfwd(lambda x: env.obs(x))
         return self._run("observation_jacobians", kernel, (X,), tuple(X.shape[:-1]))
 
     # ---- running a kernel over a batch -------------------------------------------------------
