@@ -366,6 +366,19 @@ def test_shape_only_neural_cost_has_a_fixed_scale():
         assert 0.0 <= float(net.state_cost(grown, x)) <= bound * float(net.temperature(grown))
     with pytest.raises(ValueError, match="shape_only"):
         dataclasses.replace(config.network, form="weighted")
+    # asinh instead of tanh: the same scale invariance and zero at the goal, and the cost keeps
+    # growing with the features (the ×100 network costs more, but far less than its raw ×10⁴+).
+    asinh = make_network(
+        dataclasses.replace(config, network=dataclasses.replace(config.network, squash="asinh")),
+        usv,
+    )
+    c_asinh = float(asinh.state_cost(params, x))
+    assert float(asinh.state_cost(params, usv.cost_goal_state())) == 0.0
+    np.testing.assert_allclose(float(asinh.state_cost(scaled, x)), c_asinh, rtol=1e-5)
+    c_grown = float(asinh.state_cost(grown, x))
+    assert c_asinh < c_grown < 1e3 * c_asinh
+    with pytest.raises(ValueError, match="squash"):
+        dataclasses.replace(config.network, squash="relu")
 
 
 def test_two_pole_env_sees_and_collides_with_both_poles():

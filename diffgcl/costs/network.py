@@ -93,6 +93,10 @@ class CostParams:
     log_temperature: Array
 
 
+#: The shape-only neural form's maps of the features (``CostNetworkConfig.squash``).
+SQUASHES = {"tanh": jnp.tanh, "asinh": jnp.arcsinh}
+
+
 @dataclass(frozen=True)
 class CostNetworkConfig:
     """Shape and initialisation of the cost network.
@@ -114,7 +118,10 @@ class CostNetworkConfig:
     ``"neural"`` form): the network learns the cost's shape and not its scale, as the weighted
     form learns only its weights' ratios — ``‖Â (tanh y − tanh y*)‖²`` with ``Â = A`` rescaled
     to the Frobenius norm ``a_scale·√F`` it starts near, so each step's cost is bounded and
-    the temperature alone sets the scale.
+    the temperature alone sets the scale; squash: the shape-only features' map, ``"tanh"``
+    (bounded: far from the data the cost is flat) or ``"asinh"`` (``asinh y``: it keeps growing
+    far from the data, like ``log² |y|``, so that a controller that wanders off still finds the
+    way back downhill).
     """
 
     hidden: tuple[int, ...] = (32, 32)
@@ -130,6 +137,7 @@ class CostNetworkConfig:
     features: str = "state"
     form: str = "gram"
     shape_only: bool = False
+    squash: str = "tanh"
 
     def __post_init__(self):
         if self.form not in ("gram", "neural", "weighted"):
@@ -141,6 +149,10 @@ class CostNetworkConfig:
         if self.shape_only and self.form != "neural":
             raise ValueError(
                 f"CostNetworkConfig: shape_only is for form 'neural', not {self.form!r}"
+            )
+        if self.squash not in SQUASHES:
+            raise ValueError(
+                f"CostNetworkConfig: squash {self.squash!r}; choose one of {sorted(SQUASHES)}"
             )
         if self.features not in ("state", "env"):
             raise ValueError(
@@ -428,7 +440,8 @@ class CostNetwork:
             y_goal = self._apply_features(params, self._network_input_of(params, goal, t))
             y, A = self._apply_features(params, z), params.net["A"]
             if self.config.shape_only:
-                y, y_goal = jnp.tanh(y), jnp.tanh(y_goal)
+                squash = SQUASHES[self.config.squash]
+                y, y_goal = squash(y), squash(y_goal)
                 A = A * (self.config.a_scale * jnp.sqrt(A.shape[0]) / jnp.linalg.norm(A))
             return A @ (y - y_goal)
         if self.is_affine:
