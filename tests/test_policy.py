@@ -441,28 +441,6 @@ def test_rgcl_v1_with_a_policy_vmapped_equals_unbatched(observed_demos, on_polic
             np.testing.assert_allclose(np.asarray(a), np.asarray(b[i]), rtol=1e-8, atol=1e-9)
 
 
-def test_rgcl_staged_init_equals_the_traced_one(observed_demos):
-    """The policy's first observations (of the demos, with sensor noise) from the staged
-    simulator (:func:`init_rgcl`) give the state ``rgcl.init`` gives simulating them itself."""
-    from diffgcl.algorithms.rgcl import make_train
-    from diffgcl.algorithms.staged import init_rgcl
-
-    env, demos = observed_demos
-    config = rgcl_policy_config("v2", iterations=2, obs_noise=True)
-    config = dataclasses.replace(config, gcl=dataclasses.replace(config.gcl, pretrain_steps=5))
-    rgcl = make_train(config, env)
-    key_init = jnp.stack([jax.random.PRNGKey(s) for s in (7, 8)])
-    hparams = jax.tree.map(lambda a: jnp.broadcast_to(a, (2,)), rgcl.default_hparams())
-    traced = jax.jit(jax.vmap(rgcl.init, in_axes=(0, None, 0)))(key_init, demos, hparams)
-    staged = init_rgcl(rgcl, env, key_init, demos, hparams)
-    assert rgcl.demo_observation_keys is not None
-    for a, b in zip(jax.tree.leaves(traced), jax.tree.leaves(staged), strict=True):
-        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-12)
-    # The two seeds' normalisers differ (their sensor noise does): the keys are per seed.
-    mean = np.asarray(staged.policy.params.norm.mean)
-    assert not np.allclose(mean[0], mean[1])
-
-
 def test_cli_train_with_a_policy_and_bc(observed_demos, tmp_path, monkeypatch):
     """``diffgcl train --policy mdgps`` writes each seed's policy (loadable, same actions) and its
     success; ``diffgcl bc DEMOS`` clones a demo folder into policies of the same format."""

@@ -331,10 +331,7 @@ class RGCL(NamedTuple):
     (:mod:`diffgcl.algorithms.staged`; None for v1, whose parts are ``v1``): draw(state,
     key_loop) -> request, simulate(sim, request) -> the simulator's results, update(state,
     key_loop, demos, sims) -> (state, metrics) — ``run`` is these three traced into a
-    ``lax.scan``; iterations: the config's. With a policy, ``init(key_init, demos, hparams,
-    O)`` takes the demos' observations ``O`` (sensor noise from ``demo_observation_keys(key_init,
-    demos)``) from a host loop's staged simulator instead of simulating them itself
-    (:func:`diffgcl.algorithms.staged.init_rgcl`); the same state.
+    ``lax.scan``; iterations: the config's.
     """
 
     train: Callable[..., tuple[RGCLState, RGCLMetrics]]
@@ -349,7 +346,6 @@ class RGCL(NamedTuple):
     update: Callable | None = None
     iterations: int = 0
     v1: V1Parts | None = None
-    demo_observation_keys: Callable | None = None
 
 
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
@@ -587,18 +583,7 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         key_init, key_loop = jax.random.split(key)
         return key_init, key_loop
 
-    def demo_observation_keys(key: PRNGKey, demos: DemoBatch) -> Array | None:
-        """The sensor-noise keys of the demos' observations, [C, N, T+1, 2] (None without
-        ``obs_noise``), that ``init(key, demos)`` fits the policy's normaliser to."""
-        _, key_obs = jax.random.split(jax.random.fold_in(key, 1))
-        return policy_phases.observation_keys(key_obs, demos.X.shape[:-1])
-
-    def init(
-        key: PRNGKey,
-        demos: DemoBatch,
-        hparams: RGCLHyperparams | None = None,
-        O: Array | None = None,
-    ) -> RGCLState:
+    def init(key: PRNGKey, demos: DemoBatch, hparams: RGCLHyperparams | None = None) -> RGCLState:
         hp = default_hparams() if hparams is None else hparams
         key_gps, key_net, key_samples, key_pretrain = jax.random.split(key, 4)
         start = None
@@ -639,10 +624,9 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         policy = None
         if policy_phases is not None:
             # The observation normaliser comes from what the demonstrator's sensors would show.
-            key_policy, _ = jax.random.split(jax.random.fold_in(key, 1))
-            if O is None:
-                O = policy_phases.observe(sim, demos.X, demo_observation_keys(key, demos))
-            policy = policy_phases.init(key_policy, O)
+            key_policy, key_obs = jax.random.split(jax.random.fold_in(key, 1))
+            keys = policy_phases.observation_keys(key_obs, demos.X.shape[:-1])
+            policy = policy_phases.init(key_policy, policy_phases.observe(sim, demos.X, keys))
         return RGCLState(
             gps=gps,
             cost=cost,
@@ -886,7 +870,6 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         update=update_v2 if v2 else None,
         iterations=config.iterations,
         v1=None if v2 else V1Parts(begin_v1, draw_v1, simulate_samples, gps_v1, finish_v1, G),
-        demo_observation_keys=None if policy_phases is None else demo_observation_keys,
     )
 
 

@@ -54,7 +54,7 @@ from diffgcl.algorithms.rgcl import (
     RGCLState,
     make_train,
 )
-from diffgcl.algorithms.staged import can_stage, init_rgcl, rgcl_loop
+from diffgcl.algorithms.staged import can_stage, rgcl_loop
 from diffgcl.distributed import check_same_everywhere, compile_program, is_leader, to_host
 from diffgcl.runtime import CompileClock
 from diffgcl.sim.sharding import shard_batch_if_even, vmap_over_devices
@@ -243,17 +243,12 @@ def train_seeds(
         if leader:
             print(f"resumed {ckpt} at iteration {done}/{total}")
     else:
-        if loop is not None:  # the policy's first observations on the staged simulator
-            t0 = time.perf_counter()
-            state = jax.block_until_ready(init_rgcl(rgcl, env, key_init, demos, hparams))
-            run_seconds += time.perf_counter() - t0
-        else:
-            t0 = time.perf_counter()
-            compiled_init = compile_program(init_fn.lower(key_init, demos, hparams))
-            compile_seconds += time.perf_counter() - t0
-            t0 = time.perf_counter()
-            state = jax.block_until_ready(compiled_init(key_init, demos, hparams))
-            run_seconds += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        compiled_init = compile_program(init_fn.lower(key_init, demos, hparams))
+        compile_seconds += time.perf_counter() - t0
+        t0 = time.perf_counter()
+        state = jax.block_until_ready(compiled_init(key_init, demos, hparams))
+        run_seconds += time.perf_counter() - t0
         state_host = to_host(state)
     resumed_from = done
 

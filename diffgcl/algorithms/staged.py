@@ -173,21 +173,6 @@ def rgcl_loop(rgcl, env) -> StagedLoop:
     return StagedLoop(rgcl.draw, rgcl.simulate, rgcl.update, sim, (0,), (0, None))
 
 
-def init_rgcl(rgcl, env, key_init, demos, hparams):
-    """``rgcl.init`` for a batch of seeds (``key_init: [S, 2]``, ``hparams`` with a leading [S]
-    axis), the global policy's first observations (of the demos) through ``env``'s staged
-    simulator rather than simulated inside the initialisation's program."""
-    import jax.numpy as jnp
-
-    args, axes = (key_init, demos, hparams), (0, None, 0)
-    if rgcl.demo_observation_keys is not None:
-        obs_keys = jax.jit(jax.vmap(rgcl.demo_observation_keys, in_axes=(0, None)))(key_init, demos)
-        X = jnp.broadcast_to(demos.X, (key_init.shape[0], *demos.X.shape))
-        O = rgcl.policy_phases.observe(staged_simulator(env), X, obs_keys)
-        args, axes = (*args, O), (*axes, 0)
-    return jax.jit(vmap_over_devices(rgcl.init, in_axes=axes))(*args)
-
-
 def run_rgcl(rgcl, keys, demos, env, hparams=None):
     """rGCL for a batch of seeds (``keys: [S, 2]``, ``rgcl`` from
     :func:`~diffgcl.algorithms.rgcl.make_train`) as a staged loop (:func:`rgcl_loop`). The same
@@ -197,7 +182,7 @@ def run_rgcl(rgcl, keys, demos, env, hparams=None):
     if hparams is None:
         hp = rgcl.default_hparams()
         hparams = jax.tree.map(lambda a: np.broadcast_to(a, (keys.shape[0],)), hp)
-    state = init_rgcl(rgcl, env, key_init, demos, hparams)
+    state = jax.jit(vmap_over_devices(rgcl.init, in_axes=(0, None, 0)))(key_init, demos, hparams)
     loop = rgcl_loop(rgcl, env)
     return loop.run(state, rgcl.iterations, draw_args=(key_loop,), update_args=(key_loop, demos))
 
