@@ -257,19 +257,24 @@ def test_mdgps_learns_a_policy_that_holds_from_new_starts():
     np.testing.assert_array_equal(m.gps.step_mult[:, 0], m.gps.step_mult[:, 1])
 
 
+def small_mdgps(env, iterations: int, s_steps: int, **policy):
+    """MDGPS on ``env`` with 3 samples per condition and an 8-unit policy (``policy``: more
+    :class:`PolicySettings`), small enough to compare programs on."""
+    config = MDGPSConfig(
+        gps=GPSConfig(iterations=iterations, num_samples=3, kl_step=1.0, init_var=1.0),
+        policy=PolicySettings(
+            network=PolicyConfig(hidden=(8,), init_var=1.0),
+            s_step=SStepConfig(n_steps=s_steps),
+            **policy,
+        ),
+    )
+    return make_mdgps(config, env, env.expert_cost)
+
+
 @pytest.mark.parametrize("on_policy", [False, True])
 def test_mdgps_vmapped_equals_unbatched(on_policy):
     env = ObservedPointMass()
-    config = MDGPSConfig(
-        gps=GPSConfig(iterations=3, num_samples=3, kl_step=1.0, init_var=1.0),
-        policy=PolicySettings(
-            network=PolicyConfig(hidden=(8,), init_var=1.0),
-            s_step=SStepConfig(n_steps=20),
-            sample_on_policy=on_policy,
-            obs_noise=True,
-        ),
-    )
-    md = make_mdgps(config, env, env.expert_cost)
+    md = small_mdgps(env, 3, 20, sample_on_policy=on_policy, obs_noise=True)
     keys = jnp.stack([jax.random.PRNGKey(s) for s in (3, 4)])
     batched = jax.jit(jax.vmap(md.train))(keys)
     single = jax.jit(md.train)
@@ -286,15 +291,7 @@ def test_mdgps_staged_runner_equals_the_traced_training_program(obs_noise):
     from diffgcl.algorithms.staged import run_gps_seeds
 
     env = ObservedPointMass()
-    config = MDGPSConfig(
-        gps=GPSConfig(iterations=2, num_samples=3, kl_step=1.0, init_var=1.0),
-        policy=PolicySettings(
-            network=PolicyConfig(hidden=(8,), init_var=1.0),
-            s_step=SStepConfig(n_steps=10),
-            obs_noise=obs_noise,
-        ),
-    )
-    md = make_mdgps(config, env, env.expert_cost)
+    md = small_mdgps(env, 2, 10, obs_noise=obs_noise)
     keys = jnp.stack([jax.random.PRNGKey(s) for s in (5, 6)])
     state, metrics = jax.jit(jax.vmap(md.train))(keys)
     state_s, metrics_s, _ = run_gps_seeds(md, keys, 2, env)
