@@ -23,6 +23,7 @@ import weakref
 import jax
 import numpy as np
 
+from diffgcl.eval.policy import rollout_sensor_keys
 from diffgcl.sim.sharding import vmap_over_devices
 from diffgcl.sim.simulator import Simulator
 
@@ -109,18 +110,12 @@ def run_gps_seeds(gps, keys, iterations: int, env, update_args=(), update_axes=(
 
     key_init, key_iter = jax.jit(jax.vmap(split))(keys)
     sim = staged_simulator(env)
+    args, axes = (key_init, hparams), (0, None if hparams is None else 0)
     initial_samples = getattr(gps, "initial_samples", None)
-    if initial_samples is None:
-        init = (lambda k, hp: gps.init(k)) if hparams is None else gps.init
-        init_args = ()
-    else:  # MDGPS: the policy's first observations through the staged simulator
+    if initial_samples is not None:  # MDGPS: the policy's first observations, staged
         samples = jax.jit(jax.vmap(initial_samples))(key_init)
-        init = (lambda k, hp, O: gps.init(k, None, O)) if hparams is None else gps.init
-        init_args = (gps.policy_phases.observe_initial(sim, samples),)
-    hp_axis = None if hparams is None else 0
-    state = jax.jit(jax.vmap(init, in_axes=(0, hp_axis) + (0,) * len(init_args)))(
-        key_init, hparams, *init_args
-    )
+        args, axes = (*args, gps.policy_phases.observe_initial(sim, samples)), (*axes, 0)
+    state = jax.jit(jax.vmap(gps.init, in_axes=axes))(*args)
     keyed = getattr(gps, "keyed", False)
     axes = ((0,) if keyed else ()) + tuple(update_axes)
     loop = StagedLoop(gps.draw, gps.simulate, gps.update, sim, (0,), axes)
@@ -190,12 +185,7 @@ def run_rgcl(rgcl, keys, demos, env, hparams=None):
 @functools.partial(jax.jit, static_argnums=1)
 def _rollout_obs_keys(keys, n: int):
     """[S, n, 2]: the sensor-noise keys of ``n`` rollouts per seed key (``keys: [S, 2]``)."""
-
-    def per_seed(key):
-        _, key_obs = jax.random.split(key)
-        return jax.random.split(key_obs, n)
-
-    return jax.vmap(per_seed)(keys)
+    return jax.vmap(lambda key: rollout_sensor_keys(key, n))(keys)
 
 
 def policy_rollouts(env, policy, params, x0, keys=None, *, obs_noise: bool = False):

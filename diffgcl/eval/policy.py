@@ -39,7 +39,7 @@ def policy_rollouts(
     if (noisy or obs_noise) and key is None:
         raise ValueError("policy_rollouts: noisy actions or sensors need a key")
     key = jax.random.PRNGKey(0) if key is None else key
-    key_act, key_obs = jax.random.split(key)
+    key_act, _ = jax.random.split(key)
     if noisy:
         noise = jax.vmap(lambda k: smooth_noise(k, T, env.dU, smooth_sigma))(
             jax.random.split(key_act, B)
@@ -53,7 +53,14 @@ def policy_rollouts(
     def one(x, eps, k):
         return rollout_observed(env, act, x, eps, obs_key=k if obs_noise else None)
 
-    return jax.vmap(one)(x0, noise, jax.random.split(key_obs, B))
+    return jax.vmap(one)(x0, noise, rollout_sensor_keys(key, B))
+
+
+def rollout_sensor_keys(key: PRNGKey, n: int) -> Array:
+    """[n, 2]: the sensor-noise keys of :func:`policy_rollouts`' ``n`` rollouts from ``key``
+    (the staged rollouts draw theirs the same way)."""
+    _, key_obs = jax.random.split(key)
+    return jax.random.split(key_obs, n)
 
 
 def policy_success(env: Env, trajectories: Trajectory) -> Array:
