@@ -30,6 +30,7 @@ from jax import lax
 
 from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams, GPSMetrics, GPSState, make_gps
 from diffgcl.control.ilqr import (
+    GainSearch,
     ILQRConfig,
     ILQRResult,
     cost_minimiser,
@@ -75,6 +76,7 @@ def solve(
     limits: bool = True,
     initial: str = "zeros",
     goal: Array | None = None,
+    gain_search: GainSearch | None = None,
 ) -> ILQRResult:
     """iLQR on ``env.step`` with ``cost`` from each start state ``x0: [C, dX]`` (pure; jit it).
 
@@ -89,6 +91,8 @@ def solve(
     program, twice the run time).
     goal: [dX] or [C, dX], the state the LQR stabilises (default: where the terminal cost is
     lowest, :func:`~diffgcl.control.ilqr.cost_minimiser` from each start).
+    gain_search: with ``"goal_lqr"`` or ``"best"``, start from the cheapest rollout of the goal's
+    LQR with rescaled gains instead of the LQR's own (:class:`~diffgcl.control.ilqr.GainSearch`).
     Returns an :class:`~diffgcl.control.ilqr.ILQRResult` with leading axis C.
     """
     x0 = jnp.atleast_2d(x0)
@@ -110,21 +114,28 @@ def solve(
                              f"{tuple(U.shape)}")  # fmt: skip
         return run(x0, jnp.broadcast_to(U, (C, T, dU)))
     true_cost = squared_residual(cost) if config.gauss_newton else cost
-    U_lqr = goal_lqr_starts(env, true_cost, x0, goal, limits=limits)
+    U_lqr = goal_lqr_starts(env, true_cost, x0, goal, limits=limits, search=gain_search)
     if initial == "goal_lqr":
         return run(x0, U_lqr)
     U = jnp.stack([jnp.zeros_like(U_lqr), U_lqr])  # [2, C, T, dU]
     results = jax.vmap(run, in_axes=(None, 0))(x0, U)  # fields [2, C, ...]
-    return _lowest_cost(results)[0]
+    return lowest_cost(results)[0]
 
 
 def goal_lqr_starts(
-    env: Env, cost: CostFn, x0: Array, goal: Array | None = None, *, limits: bool = True
+    env: Env,
+    cost: CostFn,
+    x0: Array,
+    goal: Array | None = None,
+    *,
+    limits: bool = True,
+    search: GainSearch | None = None,
 ) -> Array:
     """The initial actions [C, T, dU] of ``solve(..., initial="goal_lqr")`` from each start
     ``x0: [C, dX]`` (:func:`~diffgcl.control.ilqr.goal_lqr_actions`; ``goal`` [dX] or [C, dX],
     default the terminal cost's minimiser from each start; clipped to the env's
-    :func:`action_bounds` with ``limits``). ``cost`` is a cost, not a residual."""
+    :func:`action_bounds` with ``limits``; ``search``: its gains searched,
+    :class:`~diffgcl.control.ilqr.GainSearch`). ``cost`` is a cost, not a residual."""
     x0 = jnp.atleast_2d(x0)
     T, dU = env.horizon, env.dU
     box = action_bounds(env) if limits else None
@@ -133,11 +144,16 @@ def goal_lqr_starts(
         goals = jax.vmap(lambda x: cost_minimiser(cost, x, dU, T))(x0)
     else:
         goals = jnp.broadcast_to(jnp.asarray(goal, x0.dtype), x0.shape)
-    lqr = lambda x, g: goal_lqr_actions(env.step, cost, x, g, T, dU, u_min=u_min, u_max=u_max)
+
+    def lqr(x, g):
+        return goal_lqr_actions(
+            env.step, cost, x, g, T, dU, u_min=u_min, u_max=u_max, search=search
+        )
+
     return jax.vmap(lqr)(x0, goals)
 
 
-def _lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:
+def lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:
     """Per start, the run of ``results`` (fields [R, C, ...]) with the lowest finite final cost
     -> (ILQRResult [C], the index of that run [C])."""
     costs = jnp.where(jnp.isfinite(results.cost), results.cost, jnp.inf)
@@ -176,7 +192,7 @@ def solve_restarts(
     x0 = jnp.atleast_2d(x0)
     U = restart_actions(env.horizon, env.dU, scale, x0.dtype)
     results = jax.vmap(lambda u: solve(env, cost, x0, u, config))(U)  # fields [R, C, ...]
-    kept, best = _lowest_cost(results)
+    kept, best = lowest_cost(results)
     return kept, best, results
 
 
