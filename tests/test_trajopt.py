@@ -182,7 +182,8 @@ def test_expert_demos_api_and_cli(env, tmp_path, capsys):
     xml.write_text(SLIDER)
     out = tmp_path / "cli.npz"
     argv = ["demos", str(out), "--mjcf", str(xml), "--cost", "quadratic:1,0.1;u=0.05",
-            "--x0", "0.3,0;-0.2,0.1", "--horizon", str(T), "--per-start", "2"]  # fmt: skip
+            "--x0", "0.3,0;-0.2,0.1", "--horizon", str(T), "--per-start", "2",
+            "--gain-search"]  # fmt: skip
     assert main(argv) == 0
     assert "4 demos (2 per start)" in capsys.readouterr().out
     assert np.load(out)["qpos"].shape == (4, T + 1, 1)

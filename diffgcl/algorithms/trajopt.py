@@ -65,6 +65,11 @@ INITIAL_ACTIONS = ("zeros", "goal_lqr", "best")
 # is the algorithm, this is the expert's choice.
 EXPERT_INITIAL = "best"
 
+# The expert also searches the goal LQR's gains (:class:`~diffgcl.control.ilqr.GainSearch`) for
+# that start: where the actuators saturate, the LQR's own gains let some starts fall that
+# rescaled gains catch. None: the plain LQR.
+EXPERT_GAIN_SEARCH: GainSearch | None = None
+
 
 def solve(
     env: Env,
@@ -207,15 +212,16 @@ def ilqr_controllers(
     U_init: Array | None = None,
     restarts: bool = False,
     initial: str = "zeros",
+    gain_search: GainSearch | None = None,
 ) -> tuple[LinearGaussianController, ILQRResult]:
     """iLQR from every start state (``restarts``: the best of :func:`solve_restarts`; else
-    :func:`solve` from ``U_init`` or ``initial``) and the solutions as controllers (fields [C,
-    T, ...]); see :func:`diffgcl.control.ilqr.ilqr_controller` for ``init_var`` and
-    ``temperature``."""
+    :func:`solve` from ``U_init`` or ``initial`` and ``gain_search``) and the solutions as
+    controllers (fields [C, T, ...]); see :func:`diffgcl.control.ilqr.ilqr_controller` for
+    ``init_var`` and ``temperature``."""
     if restarts:
         result = solve_restarts(env, cost, x0, config)[0]
     else:
-        result = solve(env, cost, x0, U_init, config, initial=initial)
+        result = solve(env, cost, x0, U_init, config, initial=initial, gain_search=gain_search)
     ctrl = jax.vmap(lambda r: ilqr_controller(r, init_var=init_var, temperature=temperature))(
         result
     )
@@ -253,12 +259,13 @@ def make_gps_from_ilqr(
     true_cost: CostFn | None = None,
     x0: Array | None = None,
     initial: str = EXPERT_INITIAL,
+    gain_search: GainSearch | None = EXPERT_GAIN_SEARCH,
 ) -> Callable[..., tuple[GPSState, GPSMetrics, ILQRResult]]:
     """``train(key, hparams=None) -> (state, metrics, ilqr_result)``: iLQR on ``cost`` from each
-    condition (from ``initial``, see :func:`solve`), then GPS's KL-constrained iterations
-    starting from the iLQR controllers, whose noise has the shape of ``(Q_uu + μI)⁻¹`` and mean
-    variance ``init_var`` (from ``hparams`` or ``config``). ``cost`` is a residual with
-    ``config.gauss_newton`` (for both)."""
+    condition (from ``initial`` and ``gain_search``, see :func:`solve`), then GPS's
+    KL-constrained iterations starting from the iLQR controllers, whose noise has the shape of
+    ``(Q_uu + μI)⁻¹`` and mean variance ``init_var`` (from ``hparams`` or ``config``). ``cost``
+    is a residual with ``config.gauss_newton`` (for both)."""
     import dataclasses
 
     X0 = jnp.asarray(env.initial_states() if x0 is None else x0)
@@ -270,7 +277,13 @@ def make_gps_from_ilqr(
     def train(key: PRNGKey, hparams: GPSHyperparams | None = None):
         init_var = config.init_var if hparams is None else hparams.init_var
         ctrl, result = ilqr_controllers(
-            env, cost, X0, config=ilqr_config, init_var=init_var, initial=initial
+            env,
+            cost,
+            X0,
+            config=ilqr_config,
+            init_var=init_var,
+            initial=initial,
+            gain_search=gain_search,
         )
         state, metrics = train_from(key, ctrl, hparams)
         return state, metrics, result
