@@ -92,7 +92,6 @@ def expert_demos(
     ilqr=None,
     restarts: bool = False,
     initial: str | None = None,
-    gain_search: bool | None = None,
     verbose: bool = True,
 ) -> DemoSet:
     """Demonstrations for a user with a cost and no demos (:mod:`diffgcl.algorithms.trajopt`).
@@ -104,9 +103,7 @@ def expert_demos(
     ``"best"``: iLQR from zero actions and from the goal's LQR, keeping per start the cheaper
     solution, so that an unstable system is balanced rather than left to fall;
     ``"zeros"`` or ``"goal_lqr"`` runs one of them, see
-    :func:`diffgcl.algorithms.trajopt.solve`; ``gain_search``: whether the goal's LQR start is
-    the cheapest of that LQR with its gains rescaled, :class:`~diffgcl.control.ilqr.GainSearch`,
-    by default ``trajopt.EXPERT_GAIN_SEARCH``), then ``per_start`` noisy rollouts of
+    :func:`diffgcl.algorithms.trajopt.solve`), then ``per_start`` noisy rollouts of
     each solution's closed-loop controller ``u ~ N(K x + k, Σ_t)``, white noise. ``Σ_t`` has the
     shape of ``(Q_uu,t + μI)⁻¹`` — the demonstrator varies most where the cost-to-go is flattest
     — and a mean variance of ``noise_var`` in the normalised actions (0.01: a standard deviation
@@ -149,12 +146,6 @@ def expert_demos(
     X0 = env.initial_states()
     config = ILQRConfig() if ilqr is None else ilqr
     initial = trajopt.EXPERT_INITIAL if initial is None else initial
-    if gain_search is None:
-        search = trajopt.EXPERT_GAIN_SEARCH
-    else:
-        from diffgcl.control.ilqr import GainSearch
-
-        search = GainSearch() if gain_search else None
     solve = jax.jit(
         lambda x: trajopt.ilqr_controllers(
             env,
@@ -165,7 +156,6 @@ def expert_demos(
             temperature=temp,
             restarts=restarts,
             initial=initial,
-            gain_search=search,
         )
     )
     ctrl, result = solve(X0)

@@ -274,7 +274,7 @@ def run_task(name, task, args) -> dict:
     from diffgcl import api
     from diffgcl.algorithms import trajopt
     from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams
-    from diffgcl.control.ilqr import STATUS_NAMES, GainSearch, ILQRConfig, ilqr_controller
+    from diffgcl.control.ilqr import STATUS_NAMES, ILQRConfig, ilqr_controller
     from diffgcl.control.init import init_controller
     from diffgcl.costs.expansion import trajectory_cost
     from diffgcl.sim.rollout import rollout_controller
@@ -338,53 +338,17 @@ def run_task(name, task, args) -> dict:
 
     out["action_bounds"] = [np.asarray(b).tolist() for b in env.action_bounds()]
 
-    def solve(x0, limits, initial, gain_search=None):
-        return trajopt.solve(env, task.cost, x0, config=config, limits=limits, initial=initial,
-                             gain_search=gain_search)  # fmt: skip
+    def solve(x0, limits, initial):
+        return trajopt.solve(env, task.cost, x0, config=config, limits=limits, initial=initial)
 
-    def solve_from(x0, U):
-        return trajopt.solve(env, task.cost, x0, U, config=config, limits=args.limits)
-
-    start = {"zeros": "zero actions", "goal_lqr": "the goal's LQR", "best": "the better of both"}
-    label = f"iLQR from {start[args.initial]}{'' if args.limits else ', no control limits'}"
-    if args.search_row:
-        # One program: iLQR from zero actions, the goal's LQR and the goal's LQR with its gains
-        # searched; the rows keep per start the cheaper of zeros and either LQR start
-        # (initial="best" without and with trajopt.solve's gain_search).
-        if args.initial != "best":
-            raise SystemExit("trajopt_gym: --search-row compares initial 'best' with and without "
-                             "the gain search")  # fmt: skip
-        search = GainSearch()
-
-        def three(x0):
-            true_cost = task.cost
-            U_lqr = trajopt.goal_lqr_starts(env, true_cost, x0, limits=args.limits)
-            U_found = trajopt.goal_lqr_starts(env, true_cost, x0, limits=args.limits,
-                                              search=search)  # fmt: skip
-            U = jnp.stack([jnp.zeros_like(U_lqr), U_lqr, U_found])
-            return jax.vmap(lambda u: solve_from(x0, u))(U)
-
-        runs, seconds, compile_s = timed(jax.jit(three), X0)
-        pick = lambda rows: trajopt.lowest_cost(jax.tree.map(lambda a: a[rows], runs))[0]
-        out["ilqr"] = record(pick(jnp.asarray([0, 1])), seconds, compile_s)
-        out["ilqr_gain_search"] = record(pick(jnp.asarray([0, 2])), seconds, compile_s)
-        out["ilqr_gain_search"]["search"] = dataclasses.asdict(search)
-        out["ilqr_gain_search"]["costs_zeros_lqr_searched"] = np.asarray(runs.cost).tolist()
-        out["seconds_note"] = "both rows: one program running all three starts"
-        show(label, out["ilqr"])
-        show("iLQR from the better of zero actions and the goal's LQR with its gains searched",
-             out["ilqr_gain_search"])  # fmt: skip
-    else:
-        search = GainSearch() if args.gain_search else None
-        program = jax.jit(lambda x0: solve(x0, args.limits, args.initial, search))
-        result, seconds, compile_s = timed(program, X0)
-        out["ilqr"] = record(result, seconds, compile_s)
-        if search is not None:
-            out["ilqr"]["gain_search"] = dataclasses.asdict(search)
-            label += ", the goal LQR's gains searched"
-        show(label, out["ilqr"])
+    program = jax.jit(lambda x0: solve(x0, args.limits, args.initial))
+    result, seconds, compile_s = timed(program, X0)
+    out["ilqr"] = record(result, seconds, compile_s)
     out["ilqr"]["control_limited"] = args.limits
     out["ilqr"]["initial"] = args.initial
+    start = {"zeros": "zero actions", "goal_lqr": "the goal's LQR", "best": "the better of both"}
+    label = f"iLQR from {start[args.initial]}{'' if args.limits else ', no control limits'}"
+    show(label, out["ilqr"])
     if args.initial != "zeros" and args.zeros_row:  # the same solver from zero actions
         zeros, seconds, compile_s = timed(jax.jit(lambda x0: solve(x0, args.limits, "zeros")), X0)
         out["ilqr_zeros"] = record(zeros, seconds, compile_s)
@@ -513,16 +477,6 @@ def main(argv=None) -> int:
     parser.add_argument("--gps-seeds", type=int, default=1)
     parser.add_argument("--trajax", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--restarts", action="store_true", help="also iLQR's best of 1 + 2·dU")
-    parser.add_argument(
-        "--gain-search",
-        action="store_true",
-        help="search the goal LQR's gains for iLQR's start (trajopt.solve's gain_search)",
-    )
-    parser.add_argument(
-        "--search-row",
-        action="store_true",
-        help="iLQR from 'best' without and with the gain search, side by side in one program",
-    )
     parser.add_argument(
         "--limits",
         action=argparse.BooleanOptionalAction,

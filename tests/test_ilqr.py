@@ -9,7 +9,6 @@ from test_lqr import riccati_numpy
 
 from diffgcl.control.ilqr import (
     CONVERGED,
-    GainSearch,
     ILQRConfig,
     backward_pass,
     cost_minimiser,
@@ -112,45 +111,6 @@ def test_goal_lqr_actions_of_an_lq_problem_are_its_optimum():
     limit = 0.4 * np.abs(U_ref).max()
     U = goal_lqr_actions(step, cost, jnp.asarray(x0), x_goal, T, 2, u_min=-limit, u_max=limit)
     assert float(jnp.abs(U).max()) == pytest.approx(limit)
-
-
-def _numpy_cost(A, B, c, quad, x0, U):
-    """``J(U)`` of the LQ problem's open-loop rollout, in NumPy."""
-    n = np.asarray
-    x, J = x0.copy(), 0.0
-    for t in range(len(U)):
-        u = U[t]
-        J += float(n(quad.l[t]) + n(quad.l_x[t]) @ x + n(quad.l_u[t]) @ u
-                   + 0.5 * x @ n(quad.l_xx[t]) @ x + 0.5 * u @ n(quad.l_uu[t]) @ u
-                   + u @ n(quad.l_ux[t]) @ x)  # fmt: skip
-        x = A @ x + B @ u + c
-    T = len(U)
-    return J + float(n(quad.l[T]) + n(quad.l_x[T]) @ x + 0.5 * x @ n(quad.l_xx[T]) @ x)
-
-
-def test_gain_search_keeps_the_lqr_where_it_is_optimal_and_never_does_worse():
-    """Without a box the goal's LQR is the LQ problem's optimum, so no rescaled gain is cheaper
-    and the search returns the Riccati actions; with a box that makes the LQR's clipped rollout
-    suboptimal, the search's actions cost (NumPy rollout) no more than the plain LQR's, and
-    here strictly less."""
-    T = 8
-    A, B, c, quad, x0, step, cost = _lq_problem(T=T)
-    U_ref, _ = _riccati_rollout(A, B, c, quad, x0)
-    goal = cost_minimiser(cost, jnp.asarray(x0), 2, T)
-    search = GainSearch(samples=32, iterations=4)
-    U = goal_lqr_actions(step, cost, jnp.asarray(x0), goal, T, 2, search=search)
-    np.testing.assert_allclose(U, U_ref, rtol=0, atol=1e-9)
-
-    limit = 0.4 * np.abs(U_ref).max()
-    box = dict(u_min=-limit, u_max=limit)
-    plain = np.asarray(goal_lqr_actions(step, cost, jnp.asarray(x0), goal, T, 2, **box))
-    found = np.asarray(goal_lqr_actions(step, cost, jnp.asarray(x0), goal, T, 2, **box,
-                                        search=search))  # fmt: skip
-    assert np.all(np.abs(found) <= limit + 1e-12)
-    J_plain, J_found = (_numpy_cost(A, B, c, quad, x0, U) for U in (plain, found))
-    assert J_found < J_plain - 1e-6 * abs(J_plain)
-    with pytest.raises(ValueError, match="elite"):
-        GainSearch(samples=4, elite=5)
 
 
 def _pendulum(dt=0.1, T=40):

@@ -10,13 +10,7 @@ from test_lqr import riccati_numpy
 from diffgcl import api
 from diffgcl.algorithms import trajopt
 from diffgcl.algorithms.gps import GPSConfig, make_gps
-from diffgcl.control.ilqr import (
-    CONVERGED,
-    GainSearch,
-    ILQRConfig,
-    cost_minimiser,
-    goal_lqr_actions,
-)
+from diffgcl.control.ilqr import CONVERGED, ILQRConfig, cost_minimiser, goal_lqr_actions
 from diffgcl.control.init import init_controller
 from diffgcl.dynamics.autodiff import linearize
 
@@ -76,16 +70,6 @@ def test_ilqr_through_mjx_equals_riccati(env):
     np.testing.assert_allclose(goal, [0.0, 0.0], atol=1e-12)
     U_lqr = jax.jit(lambda x, g: goal_lqr_actions(env.step, cost, x, g, T, 1))(x0, goal)
     np.testing.assert_allclose(U_lqr, np.asarray(U), rtol=0, atol=1e-7)
-
-
-def test_gain_search_keeps_the_goal_lqr_where_it_is_optimal(env):
-    """On the slider, linear with its actions inside the box, the goal's LQR is the optimum, so
-    the search over its gains returns the LQR's own actions from every start."""
-    X0 = env.initial_states()
-    plain = jax.jit(lambda x: trajopt.goal_lqr_starts(env, cost, x))(X0)
-    search = GainSearch(samples=8, iterations=2)
-    found = jax.jit(lambda x: trajopt.goal_lqr_starts(env, cost, x, search=search))(X0)
-    np.testing.assert_allclose(found, plain, rtol=0, atol=1e-9)
 
 
 def test_control_limits_come_from_ctrlrange(env):
@@ -182,8 +166,7 @@ def test_expert_demos_api_and_cli(env, tmp_path, capsys):
     xml.write_text(SLIDER)
     out = tmp_path / "cli.npz"
     argv = ["demos", str(out), "--mjcf", str(xml), "--cost", "quadratic:1,0.1;u=0.05",
-            "--x0", "0.3,0;-0.2,0.1", "--horizon", str(T), "--per-start", "2",
-            "--gain-search"]  # fmt: skip
+            "--x0", "0.3,0;-0.2,0.1", "--horizon", str(T), "--per-start", "2"]  # fmt: skip
     assert main(argv) == 0
     assert "4 demos (2 per start)" in capsys.readouterr().out
     assert np.load(out)["qpos"].shape == (4, T + 1, 1)

@@ -30,7 +30,6 @@ from jax import lax
 
 from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams, GPSMetrics, GPSState, make_gps
 from diffgcl.control.ilqr import (
-    GainSearch,
     ILQRConfig,
     ILQRResult,
     cost_minimiser,
@@ -65,11 +64,6 @@ INITIAL_ACTIONS = ("zeros", "goal_lqr", "best")
 # is the algorithm, this is the expert's choice.
 EXPERT_INITIAL = "best"
 
-# The expert also searches the goal LQR's gains (:class:`~diffgcl.control.ilqr.GainSearch`) for
-# that start: where the actuators saturate, the LQR's own gains let some starts fall that
-# rescaled gains catch. None: the plain LQR.
-EXPERT_GAIN_SEARCH: GainSearch | None = None
-
 
 def solve(
     env: Env,
@@ -81,7 +75,6 @@ def solve(
     limits: bool = True,
     initial: str = "zeros",
     goal: Array | None = None,
-    gain_search: GainSearch | None = None,
 ) -> ILQRResult:
     """iLQR on ``env.step`` with ``cost`` from each start state ``x0: [C, dX]`` (pure; jit it).
 
@@ -96,8 +89,6 @@ def solve(
     program, twice the run time).
     goal: [dX] or [C, dX], the state the LQR stabilises (default: where the terminal cost is
     lowest, :func:`~diffgcl.control.ilqr.cost_minimiser` from each start).
-    gain_search: with ``"goal_lqr"`` or ``"best"``, start from the cheapest rollout of the goal's
-    LQR with rescaled gains instead of the LQR's own (:class:`~diffgcl.control.ilqr.GainSearch`).
     Returns an :class:`~diffgcl.control.ilqr.ILQRResult` with leading axis C.
     """
     x0 = jnp.atleast_2d(x0)
@@ -119,28 +110,21 @@ def solve(
                              f"{tuple(U.shape)}")  # fmt: skip
         return run(x0, jnp.broadcast_to(U, (C, T, dU)))
     true_cost = squared_residual(cost) if config.gauss_newton else cost
-    U_lqr = goal_lqr_starts(env, true_cost, x0, goal, limits=limits, search=gain_search)
+    U_lqr = goal_lqr_starts(env, true_cost, x0, goal, limits=limits)
     if initial == "goal_lqr":
         return run(x0, U_lqr)
     U = jnp.stack([jnp.zeros_like(U_lqr), U_lqr])  # [2, C, T, dU]
     results = jax.vmap(run, in_axes=(None, 0))(x0, U)  # fields [2, C, ...]
-    return lowest_cost(results)[0]
+    return _lowest_cost(results)[0]
 
 
 def goal_lqr_starts(
-    env: Env,
-    cost: CostFn,
-    x0: Array,
-    goal: Array | None = None,
-    *,
-    limits: bool = True,
-    search: GainSearch | None = None,
+    env: Env, cost: CostFn, x0: Array, goal: Array | None = None, *, limits: bool = True
 ) -> Array:
     """The initial actions [C, T, dU] of ``solve(..., initial="goal_lqr")`` from each start
     ``x0: [C, dX]`` (:func:`~diffgcl.control.ilqr.goal_lqr_actions`; ``goal`` [dX] or [C, dX],
     default the terminal cost's minimiser from each start; clipped to the env's
-    :func:`action_bounds` with ``limits``; ``search``: its gains searched,
-    :class:`~diffgcl.control.ilqr.GainSearch`). ``cost`` is a cost, not a residual."""
+    :func:`action_bounds` with ``limits``). ``cost`` is a cost, not a residual."""
     x0 = jnp.atleast_2d(x0)
     T, dU = env.horizon, env.dU
     box = action_bounds(env) if limits else None
@@ -149,16 +133,11 @@ def goal_lqr_starts(
         goals = jax.vmap(lambda x: cost_minimiser(cost, x, dU, T))(x0)
     else:
         goals = jnp.broadcast_to(jnp.asarray(goal, x0.dtype), x0.shape)
-
-    def lqr(x, g):
-        return goal_lqr_actions(
-            env.step, cost, x, g, T, dU, u_min=u_min, u_max=u_max, search=search
-        )
-
+    lqr = lambda x, g: goal_lqr_actions(env.step, cost, x, g, T, dU, u_min=u_min, u_max=u_max)
     return jax.vmap(lqr)(x0, goals)
 
 
-def lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:
+def _lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:
     """Per start, the run of ``results`` (fields [R, C, ...]) with the lowest finite final cost
     -> (ILQRResult [C], the index of that run [C])."""
     costs = jnp.where(jnp.isfinite(results.cost), results.cost, jnp.inf)
@@ -197,7 +176,7 @@ def solve_restarts(
     x0 = jnp.atleast_2d(x0)
     U = restart_actions(env.horizon, env.dU, scale, x0.dtype)
     results = jax.vmap(lambda u: solve(env, cost, x0, u, config))(U)  # fields [R, C, ...]
-    kept, best = lowest_cost(results)
+    kept, best = _lowest_cost(results)
     return kept, best, results
 
 
@@ -212,16 +191,15 @@ def ilqr_controllers(
     U_init: Array | None = None,
     restarts: bool = False,
     initial: str = "zeros",
-    gain_search: GainSearch | None = None,
 ) -> tuple[LinearGaussianController, ILQRResult]:
     """iLQR from every start state (``restarts``: the best of :func:`solve_restarts`; else
-    :func:`solve` from ``U_init`` or ``initial`` and ``gain_search``) and the solutions as
-    controllers (fields [C, T, ...]); see :func:`diffgcl.control.ilqr.ilqr_controller` for
-    ``init_var`` and ``temperature``."""
+    :func:`solve` from ``U_init`` or ``initial``) and the solutions as controllers (fields [C,
+    T, ...]); see :func:`diffgcl.control.ilqr.ilqr_controller` for ``init_var`` and
+    ``temperature``."""
     if restarts:
         result = solve_restarts(env, cost, x0, config)[0]
     else:
-        result = solve(env, cost, x0, U_init, config, initial=initial, gain_search=gain_search)
+        result = solve(env, cost, x0, U_init, config, initial=initial)
     ctrl = jax.vmap(lambda r: ilqr_controller(r, init_var=init_var, temperature=temperature))(
         result
     )
@@ -259,13 +237,12 @@ def make_gps_from_ilqr(
     true_cost: CostFn | None = None,
     x0: Array | None = None,
     initial: str = EXPERT_INITIAL,
-    gain_search: GainSearch | None = EXPERT_GAIN_SEARCH,
 ) -> Callable[..., tuple[GPSState, GPSMetrics, ILQRResult]]:
     """``train(key, hparams=None) -> (state, metrics, ilqr_result)``: iLQR on ``cost`` from each
-    condition (from ``initial`` and ``gain_search``, see :func:`solve`), then GPS's
-    KL-constrained iterations starting from the iLQR controllers, whose noise has the shape of
-    ``(Q_uu + μI)⁻¹`` and mean variance ``init_var`` (from ``hparams`` or ``config``). ``cost``
-    is a residual with ``config.gauss_newton`` (for both)."""
+    condition (from ``initial``, see :func:`solve`), then GPS's KL-constrained iterations
+    starting from the iLQR controllers, whose noise has the shape of ``(Q_uu + μI)⁻¹`` and mean
+    variance ``init_var`` (from ``hparams`` or ``config``). ``cost`` is a residual with
+    ``config.gauss_newton`` (for both)."""
     import dataclasses
 
     X0 = jnp.asarray(env.initial_states() if x0 is None else x0)
@@ -277,13 +254,7 @@ def make_gps_from_ilqr(
     def train(key: PRNGKey, hparams: GPSHyperparams | None = None):
         init_var = config.init_var if hparams is None else hparams.init_var
         ctrl, result = ilqr_controllers(
-            env,
-            cost,
-            X0,
-            config=ilqr_config,
-            init_var=init_var,
-            initial=initial,
-            gain_search=gain_search,
+            env, cost, X0, config=ilqr_config, init_var=init_var, initial=initial
         )
         state, metrics = train_from(key, ctrl, hparams)
         return state, metrics, result

@@ -146,13 +146,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="iLQR's initial actions: zeros, the goal's LQR (for balancing), or (the default) "
         "the better of both",
     )
-    g.add_argument(
-        "--gain-search",
-        action=argparse.BooleanOptionalAction,
-        default=None,
-        help="start from the goal's LQR with its gains searched for the cheapest rollout "
-        "(default: the expert's, trajopt.EXPERT_GAIN_SEARCH)",
-    )
 
 
 def mjcf_demos_command(args) -> int:
@@ -196,7 +189,6 @@ def mjcf_demos_command(args) -> int:
         seed=args.seed,
         path=args.out,
         initial=args.initial,
-        gain_search=args.gain_search,
     )
     first = {e["condition"]: e for e in reversed(demos.episodes)}
     for c in range(C):

@@ -493,33 +493,6 @@ def cost_minimiser(
     return lax.scan(newton, x_init, None, length=iterations)[0]
 
 
-@dataclass(frozen=True)
-class GainSearch:
-    """A cross-entropy search over the goal LQR's feedback gains, scored by the cost
-    (:func:`goal_lqr_actions` with ``search``).
-
-    Each of ``iterations`` rounds rolls out ``samples`` closed loops ``u_t = clip(k_t + (K_t ⊙
-    S)(x_t − x̄_t))`` from the start, ``S`` [dU, dX] drawn elementwise from ``N(m, s²)`` (``m = 1``,
-    ``s = spread`` at first; the first sample of every round is ``m`` itself, so round one
-    includes the plain LQR), refits ``m`` and ``s`` to the ``elite`` cheapest under the cost, and
-    keeps the cheapest rollout of all rounds: never dearer than the plain LQR's. ``seed`` fixes
-    the draws (the same for every start state).
-    """
-
-    samples: int = 64
-    iterations: int = 8
-    spread: float = 0.5
-    elite: int = 6
-    seed: int = 0
-
-    def __post_init__(self):
-        if not 1 <= self.elite <= self.samples or self.iterations < 1 or self.spread < 0:
-            raise ValueError(
-                f"GainSearch: need 1 <= elite <= samples, iterations >= 1 and spread >= 0, got "
-                f"{self}"
-            )
-
-
 def goal_lqr_actions(
     step: StepFn,
     cost: CostFn,
@@ -530,13 +503,10 @@ def goal_lqr_actions(
     *,
     u_min: Array | None = None,
     u_max: Array | None = None,
-    search: GainSearch | None = None,
 ) -> Array:
     """Initial actions [T, dU] for :func:`ilqr`: the rollout from ``x0`` of the time-varying
     LQR of the dynamics linearised at the goal ``(x_goal, u = 0)`` (an affine model where the
-    goal is not an equilibrium) and the cost expanded there, its actions clipped to the box;
-    with ``search`` the cheapest rollout under ``cost`` of that LQR with its gains rescaled
-    (:class:`GainSearch`).
+    goal is not an equilibrium) and the cost expanded there, its actions clipped to the box.
 
     Why: iLQR linearises along its current trajectory. From zero actions an unstable system
     (gymnasium's double pendulum) falls at once, and the Newton steps taken along a fallen
@@ -544,9 +514,7 @@ def goal_lqr_actions(
     linearisation is the textbook stabiliser; where it catches the system iLQR starts next to
     the answer. Only meaningful where the goal is an equilibrium at ``u ≈ 0`` (balancing,
     holding a pose); elsewhere it is one more start to try (:func:`diffgcl.algorithms.trajopt.solve`
-    keeps the cheaper result). Where the actions saturate, the LQR's guarantees are gone and
-    a start it lets fall may be caught by stiffer or softer gains on some states: the search
-    tries them, judged by the cost iLQR will minimise.
+    keeps the cheaper result).
     """
     dX = x0.shape[-1]
     dtype = x0.dtype
@@ -567,45 +535,8 @@ def goal_lqr_actions(
     back = backward_pass(A, B, quad, jnp.zeros((), dtype))
     bounds = action_box(u_min, u_max, dU, dtype)
     one = jnp.ones((), dtype)
-
-    def rollout(scale):  # [dU, dX] -> (actions [T, dU], cost; +inf where not finite)
-        K = back.K * scale
-        _, U, J = closed_loop_rollout(step, cost, x0, X_ref, U_zero, K, back.k, one, bounds)
-        return U, jnp.where(jnp.isfinite(J) & jnp.all(jnp.isfinite(U)), J, jnp.inf)
-
-    if search is None:
-        U, _ = rollout(jnp.ones((dU, dX), dtype))
-        return jnp.where(back.ok & jnp.all(jnp.isfinite(U)), U, U_zero)
-    U, J = _search_gains(rollout, search, (dU, dX), dtype)
-    return jnp.where(back.ok & jnp.isfinite(J), U, U_zero)
-
-
-def _search_gains(rollout, search: GainSearch, shape, dtype) -> tuple[Array, Array]:
-    """:class:`GainSearch`'s rounds over ``rollout(scale) -> (U, J)`` -> the cheapest (U, J)."""
-
-    def round_(carry, key):
-        mean, std, best_U, best_J = carry
-        scales = mean + std * jax.random.normal(key, (search.samples, *shape), dtype)
-        scales = scales.at[0].set(mean)
-        U, J = jax.vmap(rollout)(scales)
-        order = jnp.argsort(J)
-        elite = scales[order[: search.elite]]
-        i = order[0]
-        better = J[i] < best_J
-        best_U = jnp.where(better, U[i], best_U)
-        best_J = jnp.where(better, J[i], best_J)
-        return (elite.mean(0), elite.std(0) + 1e-3, best_U, best_J), None
-
-    keys = jax.random.split(jax.random.PRNGKey(search.seed), search.iterations)
-    actions = jax.eval_shape(rollout, jnp.ones(shape, dtype))[0]
-    start = (
-        jnp.ones(shape, dtype),
-        jnp.full(shape, search.spread, dtype),
-        jnp.zeros(actions.shape, dtype),
-        jnp.asarray(jnp.inf, dtype),
-    )
-    (_, _, U, J), _ = lax.scan(round_, start, keys)
-    return U, J
+    _, U, _ = closed_loop_rollout(step, cost, x0, X_ref, U_zero, back.K, back.k, one, bounds)
+    return jnp.where(back.ok & jnp.all(jnp.isfinite(U)), U, U_zero)
 
 
 def ilqr_controller(
