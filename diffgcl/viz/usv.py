@@ -73,7 +73,9 @@ def tracks_figure(run, path: Path) -> None:
 def cost_map_figure(run, path: Path, seed: int = 0) -> None:
     """The learned state cost (per step, first seed) beside the hand-written one, over the x–y
     plane around the pole for a boat heading along the course at cruise speed, with the demos'
-    tracks over them. Each map is shifted to its minimum; the colour scale is each map's own."""
+    tracks over them. Each map is shifted to its minimum; the colour scale is each map's own.
+    A cost network that reads the time is drawn at the demos' median step of closest approach
+    (at step 0 the pole is still far ahead of every demo)."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -89,8 +91,15 @@ def cost_map_figure(run, path: Path, seed: int = 0) -> None:
     def at(p):
         return x0.at[hull_sim.IX_PX].set(p[0]).at[hull_sim.IX_PY].set(p[1])
 
+    step, when = 0, ""
+    if run.rgcl.network.config.time_input:
+        distance = np.linalg.norm(_pole_relative(np.asarray(run.demos.X)), axis=-1)
+        step = int(np.median(np.argmin(distance, axis=-1)))
+        when = f" at step {step} (the demos' closest approach)"
     maps = {
-        "learned cost (rGCL)": jax.vmap(lambda p: run.rgcl.network.state_cost(params, at(p))),
+        f"learned cost (rGCL){when}": jax.vmap(
+            lambda p: run.rgcl.network.state_cost(params, at(p), step)
+        ),
         "hand-written cost": jax.vmap(lambda p: env.expert_cost(at(p), u0, 0)),
     }
     fig, axes = plt.subplots(2, 1, figsize=(11, 8.5))
