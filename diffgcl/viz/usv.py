@@ -95,7 +95,7 @@ def cost_map_figure(run, path: Path, seed: int = 0) -> None:
     if run.rgcl.network.config.time_input:
         distance = np.linalg.norm(_pole_relative(np.asarray(run.demos.X)), axis=-1)
         step = int(np.median(np.argmin(distance, axis=-1)))
-        when = f" at step {step} (the demos' closest approach)"
+        when = f" at step {step}, the closest approach"
     maps = {
         f"learned cost (rGCL){when}": jax.vmap(
             lambda p: run.rgcl.network.state_cost(params, at(p), step)
