@@ -127,9 +127,9 @@ def episode_animation(run, path: Path, method: str | None = None, index: int = 0
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    from matplotlib.animation import FuncAnimation, PillowWriter
 
     from diffgcl.envs.hull import hull_points
+    from diffgcl.viz.plots import write_gif
 
     method = method or next(iter(run.tracks))
     X = run.tracks[method][0, index]
@@ -146,7 +146,6 @@ def episode_animation(run, path: Path, method: str | None = None, index: int = 0
     (wake,) = ax.plot([], [], color="tab:blue", lw=0.8)
     (hull,) = ax.plot([], [], color="k", lw=4, solid_capstyle="round")
     title = ax.set_title("")
-    frames = list(range(0, X.shape[0], every))
 
     def draw(i):
         wake.set_data(X[: i + 1, 0], X[: i + 1, 1])
@@ -154,11 +153,9 @@ def episode_animation(run, path: Path, method: str | None = None, index: int = 0
         title.set_text(
             f"{LABELS.get(method, method)}, held-out episode {index}: t = {i * env.dt:.1f} s"
         )
-        return wake, hull, title
 
-    anim = FuncAnimation(fig, draw, frames=frames, blit=False)
-    anim.save(path, writer=PillowWriter(fps=max(1, round(1 / (every * env.dt)))))
-    plt.close(fig)
+    fps = max(1, round(1 / (every * env.dt)))
+    write_gif(fig, (wake, hull, title), draw, range(0, X.shape[0], every), path, fps)
 
 
 def save_usv_plots(run, out, overwrite: bool = False) -> list[Path]:
