@@ -45,15 +45,17 @@ def tracks_figure(run, path: Path) -> None:
     names = list(run.tracks)
     fig, axes = plt.subplots(len(names), 1, figsize=(11, 3.6 * len(names)), squeeze=False)
     demo = _pole_relative(run.demos.X)
+    # Every track's clearance in one program (one per track shape), not a dispatch per track.
+    clearances = jax.jit(jax.vmap(jax.vmap(run.env_true.clearance)))
     for ax, name in zip(axes[:, 0], names, strict=True):
         for p in demo:
             ax.plot(p[:, 0], p[:, 1], color="0.75", lw=0.8)
         tracks = run.tracks[name].reshape(-1, *run.tracks[name].shape[2:])
+        hit = np.asarray(clearances(jnp.asarray(tracks))).min(axis=1) <= 0
         score = run.summary.get(name, {})
-        for X in tracks:
+        for X, collided in zip(tracks, hit, strict=True):
             p = _pole_relative(X[None])[0]
-            clear = np.asarray(jax.vmap(run.env_true.clearance)(jnp.asarray(X)))
-            colour = "k" if clear.min() <= 0 else COLOURS.get(name, "tab:purple")
+            colour = "k" if collided else COLOURS.get(name, "tab:purple")
             ax.plot(p[:, 0], p[:, 1], color=colour, lw=0.9)
         ax.add_patch(plt.Circle((0, 0), float(run.x0_heldout[:, -1].mean()), color="tab:orange"))
         ax.axhline(0.0, color="0.5", ls=":", lw=0.8)
