@@ -505,3 +505,27 @@ def test_obs_normaliser_floors_a_constant_dimension_relative_to_its_size():
     np.testing.assert_allclose(np.asarray(norm.std)[2], 1e-3)  # all zero: the absolute floor
     plain = fit_obs_normaliser(jnp.asarray(O), 1e-3)
     np.testing.assert_allclose(np.asarray(plain.std)[0], 1e-3)
+
+
+def test_evaluate_policy_compiles_once_for_new_starts_keys_and_parameters():
+    """Another seed's parameters, starts and key reuse the compiled program (the CLI evaluates
+    every seed in a loop), and the figures are those of a plain rollout."""
+    from diffgcl.eval import policy as evaluation
+
+    env = ObservedPointMass()
+    policy, params = random_policy(jax.random.PRNGKey(3), hidden=(8,))
+    _, other = random_policy(jax.random.PRNGKey(4), hidden=(8,))
+    evaluation._rollouts_and_success.clear_cache()
+    x0 = env.initial_states()
+    first = evaluation.evaluate_policy(env, policy, params, x0, jax.random.PRNGKey(0))
+    second = evaluation.evaluate_policy(env, policy, other, x0 + 0.1, jax.random.PRNGKey(1))
+    assert evaluation._rollouts_and_success._cache_size() == 1
+    for got, p, x in ((first, params, x0), (second, other, x0 + 0.1)):
+        traj = evaluation.policy_rollouts(env, policy, p, x)
+        np.testing.assert_allclose(got["X"], np.asarray(traj.X), rtol=1e-12, atol=1e-12)
+        np.testing.assert_array_equal(got["success"], np.asarray(jax.vmap(env.success)(traj.X)))
+    sampled = evaluation.evaluate_policy(
+        env, policy, params, x0, jax.random.PRNGKey(2), noisy_samples=3
+    )
+    assert sampled["sample_success"].shape == (2,)
+    assert evaluation._rollouts_and_success._cache_size() == 2  # the noisy batch: one more

@@ -9,6 +9,8 @@ Pure; jit at the call site (or use :func:`evaluate_policy`, which does).
 
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -68,6 +70,16 @@ def policy_success(env: Env, trajectories: Trajectory) -> Array:
     return jax.vmap(env.success)(trajectories.X)
 
 
+@functools.partial(jax.jit, static_argnames=("env", "policy", "noisy", "obs_noise", "smooth_sigma"))
+def _rollouts_and_success(env, policy, params, x0, key, *, noisy, obs_noise, smooth_sigma):
+    """One compiled program per env, policy, flags and batch shape: the starts, the key and the
+    parameters are arguments, so evaluating another seed or start set reuses it."""
+    traj = policy_rollouts(
+        env, policy, params, x0, key, noisy=noisy, obs_noise=obs_noise, smooth_sigma=smooth_sigma
+    )
+    return traj.X, policy_success(env, traj)
+
+
 def evaluate_policy(
     env: Env,
     policy: GaussianPolicy,
@@ -82,28 +94,27 @@ def evaluate_policy(
     """Host-side summary on starts ``x0: [B, dX]``: the noise-free rollouts' success per start
     and, with ``noisy_samples`` > 0, the success rate of that many noisy rollouts per start.
     Returns a dict of NumPy values (``success: [B]``, ``success_rate``, and
-    ``sample_success_rate`` / ``sample_success: [B]`` when sampled) plus ``X: [B, T+1, dX]``."""
+    ``sample_success_rate`` / ``sample_success: [B]`` when sampled) plus ``X: [B, T+1, dX]``.
+    Compiled once per env, policy and batch shape, not per call."""
     x0 = jnp.asarray(x0)
-    mean = jax.jit(lambda p: policy_rollouts(env, policy, p, x0, key, obs_noise=obs_noise))(params)
-    success = np.asarray(policy_success(env, mean))
-    out = {"success": success, "success_rate": float(success.mean()), "X": np.asarray(mean.X)}
+    X, success = _rollouts_and_success(
+        env, policy, params, x0, key, noisy=False, obs_noise=obs_noise, smooth_sigma=None
+    )
+    success = np.asarray(success)
+    out = {"success": success, "success_rate": float(success.mean()), "X": np.asarray(X)}
     if noisy_samples > 0:
         reps = jnp.repeat(x0, noisy_samples, axis=0)
-
-        def sampled(p):
-            traj = policy_rollouts(
-                env,
-                policy,
-                p,
-                reps,
-                key,
-                noisy=True,
-                obs_noise=obs_noise,
-                smooth_sigma=smooth_sigma,
-            )
-            return policy_success(env, traj)
-
-        s = np.asarray(jax.jit(sampled)(params)).reshape(x0.shape[0], noisy_samples)
+        _, sampled = _rollouts_and_success(
+            env,
+            policy,
+            params,
+            reps,
+            key,
+            noisy=True,
+            obs_noise=obs_noise,
+            smooth_sigma=smooth_sigma,
+        )
+        s = np.asarray(sampled).reshape(x0.shape[0], noisy_samples)
         out["sample_success"] = s.mean(axis=1)
         out["sample_success_rate"] = float(s.mean())
     return out
