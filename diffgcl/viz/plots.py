@@ -278,7 +278,7 @@ def write_gif(fig, artists, update, frames, path: Path, fps: float) -> None:
     draws only ``artists`` over a copy of it, and every frame is mapped to one palette
     (:func:`_shared_palette`) instead of a palette of its own: matplotlib's
     ``FuncAnimation`` with its Pillow writer renders the whole figure twice per frame and
-    quantises each frame afresh, 4–5× the time for the USV's 79-frame episode."""
+    quantises each frame afresh: 8× the time for the USV's 79-frame episode."""
     import matplotlib.pyplot as plt
     from PIL import Image
 
