@@ -237,7 +237,13 @@ def arm_rollout(env, X, path: Path, every: int = 5) -> None:
 
 
 def _pack(rgb: np.ndarray) -> np.ndarray:
+    """RGB uint8 [..., 3] -> one uint32 per colour [N]."""
     return rgb.reshape(-1, 3).astype(np.uint32) @ np.array([1 << 16, 1 << 8, 1], np.uint32)
+
+
+def _unpack(packed: np.ndarray) -> np.ndarray:
+    """The inverse of :func:`_pack`: [N] -> [N, 3] (float, for distances)."""
+    return np.stack([(packed >> 16) & 255, (packed >> 8) & 255, packed & 255], 1).astype(float)
 
 
 def _shared_palette(samples):
@@ -252,7 +258,7 @@ def _shared_palette(samples):
     cube = _pack(np.stack(np.meshgrid(levels, levels, levels, indexing="ij"), -1))
     common = colours[np.argsort(-counts, kind="stable")[:40]]
     top = np.union1d(common, cube)
-    rgb = np.stack([(top >> 16) & 255, (top >> 8) & 255, top & 255], 1).astype(float)
+    rgb = _unpack(top)
 
     def index_of(image: np.ndarray) -> np.ndarray:
         packed = _pack(image)
@@ -260,8 +266,7 @@ def _shared_palette(samples):
         slot = np.clip(np.searchsorted(top, found), 0, len(top) - 1)
         exact = top[slot] == found
         if not exact.all():
-            missing = np.stack([(found >> 16) & 255, (found >> 8) & 255, found & 255], 1)[~exact]
-            distance = ((missing[:, None, :].astype(float) - rgb[None]) ** 2).sum(-1)
+            distance = ((_unpack(found[~exact])[:, None, :] - rgb[None]) ** 2).sum(-1)
             slot[~exact] = distance.argmin(1)
         return slot[inverse].astype(np.uint8).reshape(image.shape[:2])
 

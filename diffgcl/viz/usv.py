@@ -42,16 +42,18 @@ def tracks_figure(run, path: Path) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from diffgcl.usv.scores import trajectory_metrics
+
     names = list(run.tracks)
     fig, axes = plt.subplots(len(names), 1, figsize=(11, 3.6 * len(names)), squeeze=False)
     demo = _pole_relative(run.demos.X)
-    # Every track's clearance in one program (one per track shape), not a dispatch per track.
-    clearances = jax.jit(jax.vmap(jax.vmap(run.env_true.clearance)))
     for ax, name in zip(axes[:, 0], names, strict=True):
         for p in demo:
             ax.plot(p[:, 0], p[:, 1], color="0.75", lw=0.8)
         tracks = run.tracks[name].reshape(-1, *run.tracks[name].shape[2:])
-        hit = np.asarray(clearances(jnp.asarray(tracks))).min(axis=1) <= 0
+        # The scores' own per-episode metrics (one program per env and shape, already compiled
+        # by the scoring), not a clearance dispatched per track.
+        hit = trajectory_metrics(run.env_true, tracks)["collision"]
         score = run.summary.get(name, {})
         for X, collided in zip(tracks, hit, strict=True):
             p = _pole_relative(X[None])[0]
