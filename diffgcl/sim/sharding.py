@@ -112,6 +112,9 @@ def vmap_over_devices(fn, in_axes=0, mesh: Mesh | None = None):
             vmapped, mesh=m, in_specs=specs, out_specs=PartitionSpec(BATCH_AXIS), check_vma=False
         )(*args)
 
+    # Named after ``fn``, so that compile logs and experiments/bench_compile.py tell the
+    # programs apart.
+    batched.__name__ = batched.__qualname__ = getattr(fn, "__name__", "batched")
     return batched
 
 
