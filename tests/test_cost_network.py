@@ -121,20 +121,6 @@ def test_cost_is_squared_residual_and_nonnegative():
     assert not jnp.allclose(net.cost(params, xs[0], us[0], 0), net.cost(params, xs[0], us[0], T))
 
 
-def test_time_input_past_the_horizon_is_the_last_steps():
-    """Past its horizon (the demos' window) the network sees the window's last time: the cost
-    there is the last step's, while within the window it varies with t."""
-    net = make_network(time_input=True, horizon=T)
-    params = net.init(jax.random.key(0))
-    x, u = jax.random.normal(jax.random.key(1), (dX,)), jax.random.normal(jax.random.key(2), (dU,))
-    at = lambda t: net.cost(params, x, u, t)
-    assert not np.isclose(at(0), at(T))
-    for t in (T + 1, 2 * T, 10 * T):
-        np.testing.assert_allclose(at(t), at(T), rtol=1e-12)
-    with pytest.raises(ValueError, match="horizon"):
-        CostNetworkConfig(time_input=True)
-
-
 def test_trajectory_cost_uses_terminal_step_without_action():
     net = make_network()
     params = net.init(jax.random.key(0))

@@ -106,11 +106,8 @@ class CostNetworkConfig:
     layer; linear_skip: the first dX features are a linear map of ``z`` (initialised to ``z``)
     next to the MLP's ``n_features − dX`` (replaces the identity path; with weight decay on the
     MLP the cost stays quadratic unless the data ask for more); action_weight: initial ``w_u``;
-    learn_action_weight: train ``log w_u`` with the rest; time_input: append
-    ``min(t, horizon) / horizon`` to the input, ``horizon`` the demos' window (the steps GCL
-    fits the cost on): past it the cost is the window's last step's, where a controller trained
-    longer than the window would otherwise meet the network extrapolated in its time input;
-    std_floor: lower bound of the normaliser's standard deviation (in the state's own
+    learn_action_weight: train ``log w_u`` with the rest; time_input: append ``t / horizon`` to
+    the input; std_floor: lower bound of the normaliser's standard deviation (in the state's own
     units); a_scale: standard deviation of the initial
     entries of ``A`` times ``sqrt(F)``; features: ``"state"`` — the network reads the raw
     state — or ``"env"`` — it reads the env's ``cost_features(x)`` (task features), or with the
@@ -152,11 +149,6 @@ class CostNetworkConfig:
         if self.shape_only and self.form != "neural":
             raise ValueError(
                 f"CostNetworkConfig: shape_only is for form 'neural', not {self.form!r}"
-            )
-        if self.time_input and self.horizon < 2:
-            raise ValueError(
-                f"CostNetworkConfig: time_input needs horizon, the demos' window in steps "
-                f"(got {self.horizon})"
             )
         if self.squash not in SQUASHES:
             raise ValueError(
@@ -382,17 +374,14 @@ class CostNetwork:
         return (f - norm.mean) / std
 
     def network_input(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
-        """The feature network's input: the normalised state, with ``min(t, horizon) / horizon``
-        appended when ``time_input`` is on: [dIn]."""
+        """The feature network's input: the normalised state, with ``t / horizon`` appended when
+        ``time_input`` is on: [dIn]."""
         return self._network_input_of(params, self.state_input(x), t)
 
     def _network_input_of(self, params: CostParams, f: Array, t: Array | int = 0) -> Array:
         z = self._normalise_input(params, f)
         if self.config.time_input:
-            # Past the horizon (the demos' window) the network was never fit: the cost there is
-            # its last step's, not the network extrapolated in an input it never saw.
-            horizon = self.config.horizon
-            tau = jnp.minimum(jnp.asarray(t, z.dtype), horizon) / horizon
+            tau = jnp.asarray(t, z.dtype) / self.config.horizon
             z = jnp.concatenate([z, tau[None]])
         return z
 
