@@ -121,6 +121,11 @@ def test_cost_is_squared_residual_and_nonnegative():
     assert not jnp.allclose(net.cost(params, xs[0], us[0], 0), net.cost(params, xs[0], us[0], T))
 
 
+def test_time_input_needs_a_horizon():
+    with pytest.raises(ValueError, match="horizon"):
+        CostNetworkConfig(time_input=True)
+
+
 def test_trajectory_cost_uses_terminal_step_without_action():
     net = make_network()
     params = net.init(jax.random.key(0))

@@ -150,6 +150,11 @@ class CostNetworkConfig:
             raise ValueError(
                 f"CostNetworkConfig: shape_only is for form 'neural', not {self.form!r}"
             )
+        if self.time_input and self.horizon < 2:
+            raise ValueError(
+                f"CostNetworkConfig: time_input needs horizon, the demos' window in steps "
+                f"(got {self.horizon})"
+            )
         if self.squash not in SQUASHES:
             raise ValueError(
                 f"CostNetworkConfig: squash {self.squash!r}; choose one of {sorted(SQUASHES)}"
