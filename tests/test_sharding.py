@@ -209,3 +209,19 @@ def test_runner_shards_seeds_over_devices_and_resumes():
     )
     assert out.returncode == 0, out.stderr[-3000:]
     assert "OK" in out.stdout
+
+
+def test_vmap_over_devices_programs_carry_the_functions_name():
+    """Compile logs and experiments/bench_compile.py name a program by its function: the
+    wrapper takes the mapped function's name."""
+
+    def rollout_costs(x):
+        return x * 2.0
+
+    import jax
+    import jax.numpy as jnp
+
+    from diffgcl.sim.sharding import vmap_over_devices
+
+    lowered = jax.jit(vmap_over_devices(rollout_costs)).lower(jnp.zeros((4, 3)))
+    assert "jit_rollout_costs" in lowered.as_text()
