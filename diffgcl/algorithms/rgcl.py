@@ -52,7 +52,9 @@ time axis). The controllers, their samples and the policy then cover all T steps
 the demos with the samples' first T_d steps only (the fusion buffer stores those steps and the
 proposals' first T_d steps; the samples' learned cost in the metrics is over the same steps). A
 time-invariant cost learned on the window is so also optimised past it, where a boat must hold
-its course after the demos' recordings end.
+its course after the demos' recordings end. A cost with a time input
+(``CostNetworkConfig.time_input``) is not time-invariant: past the window it is the network at
+times GCL never fitted, and nothing in the update corrects it there (docs/usv_cost_form.md).
 
 NaN guard (pure, per run): when an iteration turns a finite value anywhere in the state into a
 non-finite one, the iteration is rolled back (the previous state is kept,
