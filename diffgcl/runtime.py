@@ -17,11 +17,14 @@ run as fast (``docs/compile.md``: the arm's 32-seed rGCL batch compiled in 23 s 
 ran in 6.5 s against 6.7 s). :func:`prepare_process` selects them
 (:data:`FAST_COMPILE_FLAGS`) unless ``XLA_FLAGS`` already says otherwise.
 
-For programs that run for well under a second (the test suite's), ``DIFFGCL_QUICK_COMPILE=1``
-also lowers XLA's backend optimisation level to 0 (:data:`QUICK_COMPILE_FLAGS`): the arm's
-8-seed rGCL batch compiled in 25 s instead of 36 s but ran in 4.4 s instead of 1.4 s, and the
-test suite took 15 min instead of 23 (``docs/compile.md``). Off by default: a training run of
-minutes loses more than it gains.
+XLA's backend (LLVM) optimisation level is 1 instead of XLA's 3 (:data:`COMPILE_LEVEL_FLAGS`):
+the USV's ``--fast`` run compiled in 69 s instead of 108 s and ran 6 % longer after compiling
+(36 s against 34 s), the arm's rGCL batches compiled a third faster and ran as fast
+(``docs/compile.md``). ``XLA_FLAGS=--xla_backend_optimization_level=3`` restores XLA's level for
+a run of hours. For programs that run for well under a second (the test suite's),
+``DIFFGCL_QUICK_COMPILE=1`` lowers it to 0 (:data:`QUICK_COMPILE_FLAGS`): the arm's 8-seed rGCL
+batch compiled in 25 s instead of 36 s but ran in 4.4 s instead of 1.4 s, and the test suite
+took 15 min instead of 23. A training run of minutes loses more than it gains there.
 
 jaxlib 0.10.2's XLA:CPU hands some fusions to its YNNPACK library by default; one of its transpose
 kernels crashes the process (SIGSEGV in ``slinky::fuse_contiguous_dims``, under
@@ -46,6 +49,7 @@ def cache_root() -> Path:
 
 HOST_DEVICE_FLAG = "--xla_force_host_platform_device_count"
 FAST_COMPILE_FLAGS = ("--xla_cpu_use_fusion_emitters=false",)
+COMPILE_LEVEL_FLAGS = ("--xla_backend_optimization_level=1",)
 QUICK_COMPILE_FLAGS = ("--xla_backend_optimization_level=0",)
 QUICK_COMPILE_ENV = "DIFFGCL_QUICK_COMPILE"
 CRASH_WORKAROUND_FLAGS = ("--xla_cpu_experimental_ynn_fusion_type=",)  # no YNNPACK fusions
@@ -131,13 +135,14 @@ def prepare_process(cache_dir: str | os.PathLike | None = None) -> Path:
     """What every entry point (CLI, experiments, tests) sets before it traces anything: JAX's
     persistent compilation cache (:func:`enable_compilation_cache`, returns its directory),
     :func:`relax_garbage_collection`, :data:`CRASH_WORKAROUND_FLAGS` and XLA's faster-compiling
-    CPU emitters (:data:`FAST_COMPILE_FLAGS`, and :data:`QUICK_COMPILE_FLAGS` where
-    ``$DIFFGCL_QUICK_COMPILE`` is 1; only before JAX's first computation). The environment
+    CPU emitters (:data:`FAST_COMPILE_FLAGS`) and optimisation level (:data:`COMPILE_LEVEL_FLAGS`,
+    or :data:`QUICK_COMPILE_FLAGS` where ``$DIFFGCL_QUICK_COMPILE`` is 1; only before JAX's first
+    computation). The environment
     variable, unlike flags a caller sets in ``XLA_FLAGS``, reaches every process an entry point
     starts, whatever ``XLA_FLAGS`` that process is given."""
     quick = os.environ.get(QUICK_COMPILE_ENV, "0") == "1"
     add_xla_flags(CRASH_WORKAROUND_FLAGS)
-    add_xla_flags(FAST_COMPILE_FLAGS + (QUICK_COMPILE_FLAGS if quick else ()))
+    add_xla_flags(FAST_COMPILE_FLAGS + (QUICK_COMPILE_FLAGS if quick else COMPILE_LEVEL_FLAGS))
     relax_garbage_collection()
     return enable_compilation_cache(cache_dir)
 

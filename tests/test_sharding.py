@@ -8,6 +8,7 @@ import textwrap
 import pytest
 
 from diffgcl.runtime import (
+    COMPILE_LEVEL_FLAGS,
     CRASH_WORKAROUND_FLAGS,
     FAST_COMPILE_FLAGS,
     QUICK_COMPILE_ENV,
@@ -103,8 +104,8 @@ PREPARE_SCRIPT = textwrap.dedent(
 
 @pytest.mark.parametrize("quick", ["0", "1"])
 def test_prepare_process_adds_compile_flags_to_what_xla_flags_sets(quick):
-    """The crash workaround and the emitter flag always, the optimisation level only with
-    ``DIFFGCL_QUICK_COMPILE=1``, after the flags the caller set (a child given its own
+    """The crash workaround and the emitter flag always, then the optimisation level (0 with
+    ``DIFFGCL_QUICK_COMPILE=1``, else 1), after the flags the caller set (a child given its own
     ``XLA_FLAGS`` keeps them)."""
     env = dict(os.environ, XLA_FLAGS="--xla_force_host_platform_device_count=2")
     env[QUICK_COMPILE_ENV] = quick
@@ -116,7 +117,7 @@ def test_prepare_process_adds_compile_flags_to_what_xla_flags_sets(quick):
     fixed = ["--xla_force_host_platform_device_count=2", *CRASH_WORKAROUND_FLAGS]
     fixed += FAST_COMPILE_FLAGS
     assert flags[: len(fixed)] == fixed
-    assert flags[len(fixed) :] == (list(QUICK_COMPILE_FLAGS) if quick == "1" else [])
+    assert flags[len(fixed) :] == list(QUICK_COMPILE_FLAGS if quick == "1" else COMPILE_LEVEL_FLAGS)
 
 
 def test_importing_diffgcl_turns_off_the_crashing_fusions():
