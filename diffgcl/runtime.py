@@ -18,10 +18,10 @@ ran in 6.5 s against 6.7 s). :func:`prepare_process` selects them
 (:data:`FAST_COMPILE_FLAGS`) unless ``XLA_FLAGS`` already says otherwise.
 
 XLA's backend (LLVM) optimisation level is 1 instead of XLA's 3 (:data:`COMPILE_LEVEL_FLAGS`):
-the USV's ``--fast`` run compiled in 69 s instead of 108 s and ran 6 % longer after compiling
-(36 s against 34 s), the arm's rGCL batches compiled a third faster and ran as fast
-(``docs/compile.md``). ``XLA_FLAGS=--xla_backend_optimization_level=3`` restores XLA's level for
-a run of hours. For programs that run for well under a second (the test suite's),
+the USV's ``--fast`` run compiled in 39.5 s instead of 61 s but ran 13 % longer after compiling
+(26.0 s against 23.1 s); the arm's rGCL batches compiled a third faster and ran as fast
+(``docs/compile.md``). For a run of hours, ``XLA_FLAGS=--xla_backend_optimization_level=3``
+restores XLA's level. For programs that run for well under a second (the test suite's),
 ``DIFFGCL_QUICK_COMPILE=1`` lowers it to 0 (:data:`QUICK_COMPILE_FLAGS`): the arm's 8-seed rGCL
 batch compiled in 25 s instead of 36 s but ran in 4.4 s instead of 1.4 s, and the test suite
 took 15 min instead of 23. A training run of minutes loses more than it gains there.
