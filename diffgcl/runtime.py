@@ -19,7 +19,7 @@ ran in 6.5 s against 6.7 s). :func:`prepare_process` selects them
 
 XLA's backend (LLVM) optimisation level is 1 instead of XLA's 3 (:data:`COMPILE_LEVEL_FLAGS`):
 the USV's ``--fast`` run compiled in 39.5 s instead of 61 s but ran 13 % longer after compiling
-(26.0 s against 23.1 s); the arm's rGCL batches compiled a third faster and ran as fast
+(26.0 s against 23.1 s); the arm's rGCL batches compiled 26–32 % faster and ran as fast
 (``docs/compile.md``). For a run of hours, ``XLA_FLAGS=--xla_backend_optimization_level=3``
 restores XLA's level. For programs that run for well under a second (the test suite's),
 ``DIFFGCL_QUICK_COMPILE=1`` lowers it to 0 (:data:`QUICK_COMPILE_FLAGS`): the arm's 8-seed rGCL
@@ -137,9 +137,8 @@ def prepare_process(cache_dir: str | os.PathLike | None = None) -> Path:
     :func:`relax_garbage_collection`, :data:`CRASH_WORKAROUND_FLAGS` and XLA's faster-compiling
     CPU emitters (:data:`FAST_COMPILE_FLAGS`) and optimisation level (:data:`COMPILE_LEVEL_FLAGS`,
     or :data:`QUICK_COMPILE_FLAGS` where ``$DIFFGCL_QUICK_COMPILE`` is 1; only before JAX's first
-    computation). The environment
-    variable, unlike flags a caller sets in ``XLA_FLAGS``, reaches every process an entry point
-    starts, whatever ``XLA_FLAGS`` that process is given."""
+    computation). The environment variable, unlike flags a caller sets in ``XLA_FLAGS``,
+    reaches every process an entry point starts, whatever ``XLA_FLAGS`` that process is given."""
     quick = os.environ.get(QUICK_COMPILE_ENV, "0") == "1"
     add_xla_flags(CRASH_WORKAROUND_FLAGS)
     add_xla_flags(FAST_COMPILE_FLAGS + (QUICK_COMPILE_FLAGS if quick else COMPILE_LEVEL_FLAGS))
