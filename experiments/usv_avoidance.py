@@ -193,7 +193,8 @@ def main(argv=None) -> int:
 
     from diffgcl.runtime import prepare_process
 
-    prepare_process()
+    # The radar-only variant compiles in a process of its own beside this one.
+    prepare_process(processes=1 if args.no_radar or args.serial else 2)
 
     from diffgcl.data.synth import true_params
     from diffgcl.usv import builtin_demos, load_bag_demos, run_usv, usv_rgcl

@@ -13,6 +13,7 @@ from diffgcl.runtime import (
     FAST_COMPILE_FLAGS,
     QUICK_COMPILE_ENV,
     QUICK_COMPILE_FLAGS,
+    SERIAL_CODEGEN_FLAGS,
 )
 
 SCRIPT = textwrap.dedent(
@@ -118,6 +119,30 @@ def test_prepare_process_adds_compile_flags_to_what_xla_flags_sets(quick):
     fixed += FAST_COMPILE_FLAGS
     assert flags[: len(fixed)] == fixed
     assert flags[len(fixed) :] == list(QUICK_COMPILE_FLAGS if quick == "1" else COMPILE_LEVEL_FLAGS)
+
+
+@pytest.mark.parametrize("side_by_side", [False, True])
+def test_prepare_process_codegens_serially_where_processes_fill_the_cores(side_by_side):
+    """With as many processes compiling as the machine has cores, XLA's codegen is not split
+    (a user's own split count wins); with fewer, XLA's default stays."""
+    cores = os.cpu_count() or 1
+    processes = cores if side_by_side else 1
+    script = PREPARE_SCRIPT.replace("prepare_process()", f"prepare_process(processes={processes})")
+    for given in ("", "--xla_cpu_parallel_codegen_split_count=4"):
+        env = dict(os.environ, XLA_FLAGS=given)
+        env.pop(QUICK_COMPILE_ENV, None)
+        out = subprocess.run(
+            [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=300
+        )
+        assert out.returncode == 0, out.stderr[-3000:]
+        flags = out.stdout.split("FLAGS", 1)[1].split()
+        split = [f for f in flags if f.startswith("--xla_cpu_parallel_codegen_split_count")]
+        if given:
+            assert split == [given]
+        elif processes >= cores:
+            assert split == list(SERIAL_CODEGEN_FLAGS)
+        else:
+            assert split == []
 
 
 def test_importing_diffgcl_turns_off_the_crashing_fusions():
