@@ -95,6 +95,15 @@ def variant_summary(demos, config, manifest, truth, label: str) -> dict:
     return run_usv(demos, config, manifest=manifest, true_params=truth).summary
 
 
+def warm_worker() -> None:
+    """The variant's process starts before the main process reads the demos and imports JAX,
+    MJX and the pipeline meanwhile (seconds), so that it computes as soon as its demos arrive."""
+    from diffgcl.runtime import prepare_process
+
+    prepare_process()
+    import diffgcl.usv  # noqa: F401
+
+
 def variant_result(pending, name: str) -> dict:
     """The variant's summary (``pending``: its ``AsyncResult``), or ``{"error": ...}`` when its
     process failed (the main run's figures are written all the same)."""
@@ -193,9 +202,22 @@ def main(argv=None) -> int:
 
     from diffgcl.runtime import prepare_process
 
+    side_by_side = not args.no_radar and not args.serial
     # The radar-only variant compiles in a process of its own beside this one.
-    prepare_process(processes=1 if args.no_radar or args.serial else 2)
+    prepare_process(processes=2 if side_by_side else 1)
+    pool = None
+    if side_by_side:  # started first: its imports overlap this process's imports and ingestion
+        pool = multiprocessing.get_context("spawn").Pool(1, initializer=warm_worker)
+    try:
+        return run_variants(args, pool)
+    finally:
+        if pool is not None:
+            pool.terminate()  # not left training on after a failed or interrupted main run
 
+
+def run_variants(args, pool) -> int:
+    """The main run here and the radar-only variant in ``pool`` (None: after the main run, in
+    this process, or not at all with ``--no-radar``); the summary, plots and JSON."""
     from diffgcl.data.synth import true_params
     from diffgcl.usv import builtin_demos, load_bag_demos, run_usv, usv_rgcl
 
@@ -234,18 +256,11 @@ def main(argv=None) -> int:
         main_cfg = dataclasses.replace(main_cfg, rgcl=rgcl)
         radar_cfg = dataclasses.replace(radar_cfg, rgcl=rgcl)
     radar_label = "== radar-only variant: sets " + ", ".join(radar_cfg.task.sets)
-    pool = None
-    if not args.no_radar and not args.serial:
+    if pool is not None:
         print(radar_label + ", in a process of its own (lines marked [radar])")
-        pool = multiprocessing.get_context("spawn").Pool(1)
         beside = pool.apply_async(variant_summary, (demos, radar_cfg, manifest, truth, "[radar] "))
     print("== main run: " + ", ".join(main_cfg.task.sets) + f" ({main_cfg.task.observation})")
-    try:
-        run = run_usv(demos, main_cfg, manifest=manifest, true_params=truth)
-    except BaseException:
-        if pool is not None:
-            pool.terminate()  # not left training on after a failed or interrupted main run
-        raise
+    run = run_usv(demos, main_cfg, manifest=manifest, true_params=truth)
     radar = None
     if pool is not None:
         radar = variant_result(beside, "radar-only")
