@@ -96,8 +96,9 @@ def variant_summary(demos, config, manifest, truth, label: str) -> dict:
 
 
 def warm_worker() -> None:
-    """The variant's process starts before the main process reads the demos and imports JAX,
-    MJX and the pipeline meanwhile (seconds), so that it computes as soon as its demos arrive."""
+    """First thing in the variant's process, which starts before the main process reads the
+    demos: it imports JAX, MJX and the pipeline meanwhile (seconds), so that the variant computes
+    as soon as its demos arrive. Its ``XLA_FLAGS`` are the main process's (inherited)."""
     from diffgcl.runtime import prepare_process
 
     prepare_process()
