@@ -36,6 +36,7 @@ import time
 import traceback
 from pathlib import Path
 
+from diffgcl.cli.errors import guarded
 from diffgcl.cli.usv import parse_margins
 
 
@@ -210,7 +211,7 @@ def main(argv=None) -> int:
     if side_by_side:  # started first: its imports overlap this process's imports and ingestion
         pool = multiprocessing.get_context("spawn").Pool(1, initializer=warm_worker)
     try:
-        return run_variants(args, pool)
+        return guarded(run_variants)(args, pool)
     finally:
         if pool is not None:
             pool.terminate()  # not left training on after a failed or interrupted main run

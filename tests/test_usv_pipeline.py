@@ -455,3 +455,27 @@ def test_cli_usv_margins(capsys):
             parser.parse_args(["usv", "--margins", bad])
         err = capsys.readouterr().err
         assert f"margins '{bad}'" in err and why in err
+
+
+def test_cli_usv_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    """A folder without bags, or an ``--out`` folder the program did not write, is one line on
+    stderr naming it and exit status 2, before any work; the user's folder is left as it was."""
+    from diffgcl.cli import main
+
+    empty = tmp_path / "no_bags"
+    empty.mkdir()
+    topics = tmp_path / "topics.yaml"
+    topics.write_text("{}\n")
+    code = main(
+        ["usv", "--bags", str(empty), "--topics", str(topics), "--out", str(tmp_path / "o")]
+    )
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("error: ") and str(empty) in err and "\n" not in err
+
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("a user's file")
+    code = main(["usv", "--fast", "--out", str(foreign)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and err.startswith("error: ") and str(foreign) in err and "\n" not in err
+    assert [p.name for p in foreign.iterdir()] == ["notes.txt"]
