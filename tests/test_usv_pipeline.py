@@ -457,9 +457,10 @@ def test_cli_usv_margins(capsys):
         assert f"margins '{bad}'" in err and why in err
 
 
-def test_cli_usv_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
-    """A folder without bags, or an ``--out`` folder the program did not write, is one line on
-    stderr naming it and exit status 2, before any work; the user's folder is left as it was."""
+def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
+    """A folder without bags, an ``--out`` folder the program did not write, a folder that is no
+    run folder, demos that are none: one line on stderr naming it and exit status 2, before any
+    work; the user's folder is left as it was."""
     from diffgcl.cli import main
 
     empty = tmp_path / "no_bags"
@@ -479,3 +480,15 @@ def test_cli_usv_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert code == 2 and err.startswith("error: ") and str(foreign) in err and "\n" not in err
     assert [p.name for p in foreign.iterdir()] == ["notes.txt"]
+
+    for argv, named in (
+        (["eval", str(foreign)], foreign),
+        (["plot", str(foreign)], foreign),
+        (["train", "--demos", str(empty), "--out", str(tmp_path / "t")], empty),
+    ):
+        code = main(argv)
+        err = capsys.readouterr().err.strip()
+        assert code == 2 and err.startswith("error: ") and str(named) in err, (argv, err)
+        assert "\n" not in err
+    assert [p.name for p in foreign.iterdir()] == ["notes.txt"]
+    assert not (tmp_path / "t").exists()

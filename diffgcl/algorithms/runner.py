@@ -549,9 +549,18 @@ def policy_settings_from_dict(d: dict | None):
     return PolicySettings(network=PolicyConfig(**net), s_step=SStepConfig(**d.pop("s_step")), **d)
 
 
+class RunFolderError(ValueError):
+    """A folder given as a run folder that ``train`` did not write."""
+
+
 def load_run(run_dir: Path, env):
     """(config, RunResult, DemoBatch) of a run folder written by ``train``."""
     run_dir = Path(run_dir)
+    missing = [name for name in ("config.json", CHECKPOINT) if not (run_dir / name).is_file()]
+    if missing:
+        raise RunFolderError(
+            f"{run_dir}: not a run folder of `diffgcl train` (no {' or '.join(missing)})"
+        )
     config = config_from_dict(json.loads((run_dir / "config.json").read_text()))
     with np.load(run_dir / CHECKPOINT) as f:
         seeds = [int(s) for s in f["seeds"]]

@@ -16,6 +16,8 @@ import importlib
 import sys
 import time
 
+from diffgcl.cli.errors import guarded
+
 SUBCOMMAND_MODULES: tuple[str, ...] = (
     "diffgcl.cli.gps",
     "diffgcl.cli.rgcl",
@@ -128,7 +130,7 @@ def main(argv: list[str] | None = None) -> int:
     else:
         set_cpu_devices()  # seed batches are sharded over the cores
     prepare_process()
-    return int(args.func(args) or 0)
+    return int(guarded(args.func)(args) or 0)
 
 
 if __name__ == "__main__":

@@ -38,13 +38,13 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument(
         "--topics", default=None, help="topic map YAML: its commands and markers are on change"
     )
-    p.set_defaults(func=guarded(cmd_inspect))
+    p.set_defaults(func=cmd_inspect)
 
     p = sub.add_parser("template", help="write a starting topic map for a bag")
     p.add_argument("path", help="a .bag file (ROS1) or a ROS2 bag folder")
     p.add_argument("--out", default=None, help="YAML file to write (default: print it)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing --out file")
-    p.set_defaults(func=guarded(cmd_template))
+    p.set_defaults(func=cmd_template)
 
     p = sub.add_parser("convert", help="ingest bags into a demonstration dataset")
     p.add_argument("paths", nargs="+", help=".bag files (ROS1) or ROS2 bag folders")
@@ -59,7 +59,7 @@ def register(subparsers) -> argparse.ArgumentParser:
     p.add_argument("--horizon", type=int, default=None, help="pad/crop episodes to T steps")
     p.add_argument("--no-observations", action="store_true", help="skip range-sensor reduction")
     p.add_argument("--quiet", action="store_true", help="no progress bar, no warnings")
-    p.set_defaults(func=guarded(cmd_convert))
+    p.set_defaults(func=cmd_convert)
 
     p = sub.add_parser("synth", help="write synthetic bags (simulated operator)")
     p.add_argument("--out", required=True, help="output folder (see --overwrite)")
@@ -100,7 +100,7 @@ def register(subparsers) -> argparse.ArgumentParser:
         "--short", action="store_true", help="short episodes (start 60-80 m from the pole)"
     )
     p.add_argument("--quiet", action="store_true", help="no progress bar")
-    p.set_defaults(func=guarded(cmd_synth))
+    p.set_defaults(func=cmd_synth)
     return bags
 
 
@@ -208,7 +208,7 @@ def main(argv: list[str] | None = None) -> int:
     from diffgcl.runtime import prepare_process
 
     prepare_process()
-    return run(args)
+    return guarded(run)(args)
 
 
 if __name__ == "__main__":

@@ -10,13 +10,16 @@ EXIT_BAD_INPUT = 2
 
 
 def bad_input_errors() -> tuple[type[Exception], ...]:
-    """The library's errors for bad input: a bag, a topic map, demos, an output folder."""
+    """The library's errors for bad input: a bag, a topic map, demos, an output folder, a run
+    folder, an MJCF model."""
+    from diffgcl.algorithms.runner import RunFolderError
     from diffgcl.data.bags import BagError
     from diffgcl.data.demos import DemoError
     from diffgcl.data.topics import TopicMapError
     from diffgcl.io import OutputError
+    from diffgcl.sim.mjcf import MJCFError
 
-    return BagError, TopicMapError, DemoError, OutputError
+    return BagError, TopicMapError, DemoError, OutputError, RunFolderError, MJCFError
 
 
 def guarded(command):

@@ -19,8 +19,6 @@ import dataclasses
 import json
 from pathlib import Path
 
-from diffgcl.cli.errors import guarded
-
 
 def parse_margins(text: str) -> tuple[float, ...]:
     """``"5,10,20,30"`` -> (5.0, 10.0, 20.0, 30.0), for ``--margins`` (``UsvTaskConfig.
@@ -139,4 +137,4 @@ def register(subparsers) -> None:
     )
     p.add_argument("--out", type=Path, default=Path("runs/usv"))
     p.add_argument("--overwrite", action="store_true", help="write into a foreign folder")
-    p.set_defaults(func=guarded(usv_command))
+    p.set_defaults(func=usv_command)
