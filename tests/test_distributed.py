@@ -2,7 +2,8 @@
 processes × 1 device against the same sweep in 1 process × 2 devices (float64, exact), with a
 process killed mid-run.
 
-The runs go through tests/multiprocess_sweep.py (the stand-in env of test_rgcl.py). On CPU,
+The runs go through tests/multiprocess_sweep.py (the stand-in env of test_rgcl.py), and the host's
+staged simulation of an MJX model in every process through tests/multiprocess_staged.py. On CPU,
 JAX's persistent compilation cache is written by process 0 only and its keys differ between
 processes, so process 1 compiles the tiny program afresh in every run (≈ 20–60 s here).
 """
@@ -307,6 +308,29 @@ def test_a_killed_process_fails_the_run_in_bounded_time(demos_file, tmp_path, ca
     assert int(found.group(2)) <= HEARTBEAT_TIMEOUT_S + 20, last
     if found.group(1) == "exit code 1":
         assert re.search(r"^sweep: .* failed, another process of the run has stopped", err, re.M)
+
+
+def test_staged_simulation_runs_in_every_process(tmp_path, capfd):
+    """Host-side staged work (the demos' dynamics that ``diffgcl sweep`` and ``train`` compute
+    before the runs, the API's rollouts) in a run of 2 processes: each process computes the whole
+    batch on its own device and gets what one process gets. An MJX model: a program whose
+    output XLA leaves split over the processes' devices cannot be read back on the host, which
+    ended ``diffgcl sweep --local-processes 2`` on the built-in arm."""
+    sys.path.insert(0, str(Path(__file__).parent))
+    from multiprocess_staged import staged_outputs
+    from test_trajopt import SLIDER
+
+    model = tmp_path / "slider.xml"
+    model.write_text(SLIDER)
+    command = [sys.executable, str(Path(__file__).with_name("multiprocess_staged.py"))]
+    rc = launch_local([*command, str(model), str(tmp_path / "out")], 2, timeout_s=600)
+    err = capfd.readouterr().err
+    assert rc == 0, err[-3000:]
+    one = staged_outputs(model)
+    for i in range(2):
+        got = np.load(tmp_path / f"out_{i}.npz")
+        for name, value in one.items():
+            np.testing.assert_allclose(got[name], value, rtol=1e-12, atol=1e-12, err_msg=name)
 
 
 @pytest.mark.slow

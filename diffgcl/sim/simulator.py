@@ -214,10 +214,15 @@ class Simulator:
     def _run_staged(self, name, kernel, inputs, lead: tuple[int, ...]):
         """``kernel`` vmapped over the flattened batch, as one compiled program over chunks of
         a fixed size (the last padded with copies of the first element: a valid state,
-        controller and key), however large the batch: every call of this kind shares it."""
+        controller and key), however large the batch: every call of this kind shares it.
+
+        The chunks are split over this process's devices only: a staged result is a host array,
+        and in a run of several processes each one computes the whole batch itself (the same in
+        every process), where a mesh over all processes' devices would leave it slices it cannot
+        read."""
         from diffgcl.sim.sharding import batch_mesh, shard_batch
 
-        mesh = batch_mesh()
+        mesh = batch_mesh(jax.local_devices())
         devices = mesh.devices.size
         n = int(np.prod(lead, dtype=int))
         kind = name if isinstance(name, str) else name[0]
