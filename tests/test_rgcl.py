@@ -193,7 +193,13 @@ def test_cli_train_eval_plot_on_stand_in(slider, tmp_path, monkeypatch):
 
 
 def test_presets_and_overrides():
-    from diffgcl.algorithms.presets import get_preset, paper_v1, paper_v2, with_overrides
+    from diffgcl.algorithms.presets import (
+        ConfigError,
+        get_preset,
+        paper_v1,
+        paper_v2,
+        with_overrides,
+    )
 
     v1, v2 = paper_v1(), paper_v2()
     assert (v1.schedule, v1.iterations, v1.gps_per_update) == ("v1", 18, 5)
@@ -207,17 +213,17 @@ def test_presets_and_overrides():
     e = with_overrides(d, ["gcl.n_steps=7", "gps.maxent=True", "network.hidden=[8, 8]"])
     assert e.gcl.n_steps == 7 and e.gps.maxent and e.network.hidden == (8, 8)
     assert d.gcl.n_steps != 7  # never mutated
-    with pytest.raises(ValueError, match="no field"):
+    with pytest.raises(ConfigError, match="no field"):
         with_overrides(d, ["gcl.nope=1"])
-    with pytest.raises(ValueError, match="schedule"):
+    with pytest.raises(ConfigError, match="schedule"):
         get_preset("paper_v1", "v2")
     # Edits of one dataclass apply together: this pair is valid only as a pair, in either order.
     f = with_overrides(d, ["gcl.importance_weights=False", "gcl.demos_in_partition=False"])
     assert not f.gcl.importance_weights and not f.gcl.demos_in_partition
     assert with_overrides(d, ["gcl.n_steps=3", "gcl.n_steps=4"]).gcl.n_steps == 4  # last wins
-    with pytest.raises(ValueError, match="demos_in_partition"):
+    with pytest.raises(ConfigError, match="demos_in_partition"):
         with_overrides(d, ["gcl.importance_weights=False"])
-    with pytest.raises(ValueError, match="also"):
+    with pytest.raises(ConfigError, match="also"):
         with_overrides(d, ["gps=None", "gps.maxent=True"])
     # The API's preset: the default with the feature-matching cost update, either schedule.
     for schedule in ("v1", "v2"):

@@ -459,8 +459,9 @@ def test_cli_usv_margins(capsys):
 
 def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
     """A folder without bags, an ``--out`` folder the program did not write, a folder that is no
-    run folder, demos that are none: one line on stderr naming it and exit status 2, before any
-    work; the user's folder is left as it was."""
+    run folder, demos that are none, a preset or ``--set`` edit that makes no configuration: one
+    line on stderr naming it and exit status 2, before any work; the user's folder is left as it
+    was."""
     from diffgcl.cli import main
 
     empty = tmp_path / "no_bags"
@@ -485,6 +486,9 @@ def test_cli_bad_input_is_one_line_and_exit_2(tmp_path, capsys):
         (["eval", str(foreign)], foreign),
         (["plot", str(foreign)], foreign),
         (["train", "--demos", str(empty), "--out", str(tmp_path / "t")], empty),
+        (["sweep", "--iterations", "1", "--json", str(tmp_path / "s.json")], "iterations=1"),
+        (["train", "--set", "gcl.nope=2", "--out", str(tmp_path / "t")], "'nope'"),
+        (["sweep", "--preset", "nope", "--json", str(tmp_path / "s.json")], "'nope'"),
     ):
         code = main(argv)
         err = capsys.readouterr().err.strip()

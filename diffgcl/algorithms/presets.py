@@ -15,7 +15,8 @@
 
 A preset is a function returning a frozen :class:`~diffgcl.algorithms.rgcl.RGCLConfig`;
 :func:`get_preset` looks one up by name and :func:`with_overrides` applies ``"a.b=value"`` edits
-(never mutating the preset).
+(never mutating the preset). Either raises :class:`ConfigError` for a name, an edit or a value
+that makes no configuration.
 """
 
 from __future__ import annotations
@@ -27,6 +28,11 @@ from diffgcl.algorithms.gps import GPSConfig
 from diffgcl.algorithms.rgcl import RGCLConfig
 from diffgcl.costs.gcl import GCLConfig
 from diffgcl.costs.network import CostNetworkConfig
+
+
+class ConfigError(ValueError):
+    """A preset name, schedule or ``"a.b=value"`` edit that makes no configuration (the message
+    names it): bad input, which the command line reports in one line."""
 
 
 def _paper(schedule: str, iterations: int, gps_per_update: int) -> RGCLConfig:
@@ -324,12 +330,12 @@ def get_preset(name: str, schedule: str | None = None) -> RGCLConfig:
     """Preset ``name``; ``schedule`` picks v1/v2 of ``default`` and ``mjcf`` (the paper presets
     fix their own and reject a different one)."""
     if name not in PRESETS:
-        raise ValueError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
+        raise ConfigError(f"unknown preset {name!r}; choose one of {', '.join(PRESETS)}")
     if name in ("default", "mjcf"):
         return PRESETS[name](schedule or "v2")
     config = PRESETS[name]()
     if schedule is not None and schedule != config.schedule:
-        raise ValueError(f"preset {name} is schedule {config.schedule}, not {schedule}")
+        raise ConfigError(f"preset {name} is schedule {config.schedule}, not {schedule}")
     return config
 
 
@@ -345,7 +351,7 @@ def with_overrides(config, overrides: list[str] | tuple[str, ...] = ()):
     edits = _Edits()
     for item in overrides:
         if "=" not in item:
-            raise ValueError(f"override {item!r}: expected name=value")
+            raise ConfigError(f"override {item!r}: expected name=value")
         path, text = item.split("=", 1)
         try:
             value = ast.literal_eval(text)
@@ -356,11 +362,18 @@ def with_overrides(config, overrides: list[str] | tuple[str, ...] = ()):
         for name in parents:
             node = node.setdefault(name, _Edits())
             if not isinstance(node, _Edits):
-                raise ValueError(f"override {item!r}: {name} is also set as a whole")
+                raise ConfigError(f"override {item!r}: {name} is also set as a whole")
         if isinstance(node.get(leaf), _Edits):
-            raise ValueError(f"override {item!r}: {leaf} also has edits of its fields")
+            raise ConfigError(f"override {item!r}: {leaf} also has edits of its fields")
         node[leaf] = value
-    return _apply_edits(config, edits) if edits else config
+    if not edits:
+        return config
+    try:
+        return _apply_edits(config, edits)
+    except ConfigError:
+        raise
+    except (ValueError, TypeError) as err:  # a dataclass's own check of the edited fields
+        raise ConfigError(f"override {', '.join(map(repr, overrides))}: {err}") from None
 
 
 class _Edits(dict):
@@ -372,7 +385,7 @@ def _apply_edits(obj, edits: _Edits):
     changes = {}
     for name, value in edits.items():
         if name not in fields:
-            raise ValueError(f"override: {type(obj).__name__} has no field {name!r}")
+            raise ConfigError(f"override: {type(obj).__name__} has no field {name!r}")
         current = getattr(obj, name)
         if isinstance(value, _Edits):
             value = _apply_edits(current, value)

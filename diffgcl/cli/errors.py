@@ -11,7 +11,8 @@ EXIT_BAD_INPUT = 2
 
 def bad_input_errors() -> tuple[type[Exception], ...]:
     """The library's errors for bad input: a bag, a topic map, demos, an output folder, a run
-    folder, an MJCF model."""
+    folder, an MJCF model, a preset or ``--set`` edit."""
+    from diffgcl.algorithms.presets import ConfigError
     from diffgcl.algorithms.runner import RunFolderError
     from diffgcl.data.bags import BagError
     from diffgcl.data.demos import DemoError
@@ -19,7 +20,7 @@ def bad_input_errors() -> tuple[type[Exception], ...]:
     from diffgcl.io import OutputError
     from diffgcl.sim.mjcf import MJCFError
 
-    return BagError, TopicMapError, DemoError, OutputError, RunFolderError, MJCFError
+    return BagError, TopicMapError, DemoError, OutputError, RunFolderError, MJCFError, ConfigError
 
 
 def guarded(command):
