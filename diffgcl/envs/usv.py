@@ -448,7 +448,7 @@ def default_conditions(radius: float = 0.5, speed: float = 10.0) -> np.ndarray:
     a boat at the origin on course at ``speed`` (thrust state at the thrust that holds it)."""
     from diffgcl.envs.hull import DEFAULT_POLES
 
-    params = hull_sim.default_params(np.float64)
+    params = hull_sim.default_params()  # JAX's float type: float64 only where x64 is on
     poles = np.asarray(DEFAULT_POLES, dtype=float)
     x0 = np.zeros((poles.shape[0], DX))
     x0[:, hull_sim.IX_VX] = speed
