@@ -4,8 +4,8 @@ For gymnasium's ``reacher.xml``, ``inverted_pendulum.xml`` and ``inverted_double
 (read from the installed gymnasium package, loaded with ``api.load_model`` at gymnasium's control
 period: frame skip 2, 2 and 5), from start states drawn from the v5 envs' own reset
 distributions (NumPy ``default_rng(seed)``, default seed 0; the pendulums' hinge angles scaled
-3×), each task with a plain quadratic cost written by hand (below), this script runs and reports
-per start state:
+3×, ``--tilt-scale 1`` for gymnasium's own), each task with a plain quadratic cost written by
+hand (below), this script runs and reports per start state:
 
 * **iLQR** (:mod:`diffgcl.control.ilqr`) from the expert's default initial actions (the better
   of zero actions and the goal's LQR, ``--initial best``; ``--initial zeros`` for the plain
@@ -154,15 +154,19 @@ def reacher_starts(rng, n):
     return X
 
 
-def pendulum_starts(rng, n):
+# The pendulums' hinge angles: gymnasium's reset distribution scaled up this much (--tilt-scale).
+TILT_SCALE = 3.0
+
+
+def pendulum_starts(rng, n, tilt=TILT_SCALE):
     X = rng.uniform(-0.01, 0.01, (n, 4))
-    X[:, 1] *= 3.0
+    X[:, 1] *= tilt
     return X
 
 
-def double_starts(rng, n):
+def double_starts(rng, n, tilt=TILT_SCALE):
     X = np.concatenate([rng.uniform(-0.1, 0.1, (n, 3)), 0.1 * rng.standard_normal((n, 3))], 1)
-    X[:, 1:3] *= 3.0
+    X[:, 1:3] *= tilt
     return X
 
 
@@ -288,7 +292,11 @@ def run_task(name, task, args) -> dict:
         if name != "pendulum":
             raise SystemExit("trajopt_gym: --hard is for the pendulum only")
         starts = pendulum_hard_starts
-    X0 = starts(np.random.default_rng(args.seed), args.starts)
+    rng = np.random.default_rng(args.seed)
+    if starts in (pendulum_starts, double_starts):
+        X0 = starts(rng, args.starts, tilt=args.tilt_scale)
+    else:
+        X0 = starts(rng, args.starts)
     if name == "double_pendulum" and args.double_weights is not None:
         task = dataclasses.replace(task, cost=double_pendulum_cost(args.double_weights))
     env = api.load_model(
@@ -310,6 +318,7 @@ def run_task(name, task, args) -> dict:
         "ctrl_scale": np.asarray(env.ctrl_scale).tolist(),
         "starts": np.asarray(X0).tolist(),
         "seed": args.seed,
+        "tilt_scale": args.tilt_scale if starts in (pendulum_starts, double_starts) else None,
     }
     if name == "double_pendulum":
         out["weights"] = list(args.double_weights or DOUBLE_WEIGHTS)
@@ -497,6 +506,12 @@ def main(argv=None) -> int:
     )
     parser.add_argument(
         "--hard", action="store_true", help="pendulum: tilts ±0.15 rad, cart 0.1–0.2 m off"
+    )
+    parser.add_argument(
+        "--tilt-scale",
+        type=float,
+        default=TILT_SCALE,
+        help="the pendulums' hinge angles: gymnasium's reset distribution times this (1: its own)",
     )
     parser.add_argument(
         "--double-weights",
