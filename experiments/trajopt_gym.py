@@ -293,10 +293,8 @@ def run_task(name, task, args) -> dict:
             raise SystemExit("trajopt_gym: --hard is for the pendulum only")
         starts = pendulum_hard_starts
     rng = np.random.default_rng(args.seed)
-    if starts in (pendulum_starts, double_starts):
-        X0 = starts(rng, args.starts, tilt=args.tilt_scale)
-    else:
-        X0 = starts(rng, args.starts)
+    tilt = args.tilt_scale if starts in (pendulum_starts, double_starts) else None
+    X0 = starts(rng, args.starts) if tilt is None else starts(rng, args.starts, tilt=tilt)
     if name == "double_pendulum" and args.double_weights is not None:
         task = dataclasses.replace(task, cost=double_pendulum_cost(args.double_weights))
     env = api.load_model(
@@ -318,7 +316,7 @@ def run_task(name, task, args) -> dict:
         "ctrl_scale": np.asarray(env.ctrl_scale).tolist(),
         "starts": np.asarray(X0).tolist(),
         "seed": args.seed,
-        "tilt_scale": args.tilt_scale if starts in (pendulum_starts, double_starts) else None,
+        "tilt_scale": tilt,
     }
     if name == "double_pendulum":
         out["weights"] = list(args.double_weights or DOUBLE_WEIGHTS)
