@@ -43,6 +43,9 @@ cost +∞ before it), so there is no second call site of the simulator. Everythi
 one start state; ``jax.vmap`` over start states (and anything the cost reads, passed as traced
 arguments) gives one compiled program for all of them.
 
+:func:`ilqr_best_of` runs iLQR from several initial action sequences of one start side by side
+and keeps the cheapest, stopping a run once another has finished cheaper after as many trips.
+
 :func:`ilqr_controller` turns a result into the :class:`~diffgcl.types.LinearGaussianController`
 that GPS starts from, ``u = K_t x + (U_t − K_t X_t)`` with the final backward pass's gains and a
 covariance of the shape of ``(Q_uu + μI)⁻¹`` (see there for the scaling).
@@ -77,11 +80,13 @@ StepFn = Callable[[Array, Array], Array]
 CONVERGED = 0  # the cost stopped improving (accepted step or predicted step below tol)
 MAX_ITERATIONS = 1  # max_iterations reached while still improving
 STUCK = 2  # μ rose past mu_max: no descent step found (or Q_uu never positive definite)
+BEATEN = 3  # stopped by ilqr_best_of: dearer than a finished run after as many trips
 
 STATUS_NAMES = {
     CONVERGED: "converged",
     MAX_ITERATIONS: "iteration limit",
     STUCK: "regularisation limit (no descent step)",
+    BEATEN: "stopped: another initial sequence finished cheaper",
 }
 
 
@@ -314,6 +319,69 @@ def ilqr(
     clamps the actions (MuJoCo's ``ctrlrange``): past a limit the simulator's ``B`` is zero and
     unconstrained iLQR keeps pushing where it has no authority. None (both): unconstrained.
     """
+    init, trip = _ilqr_loop(step, cost, x0, U_init, config, u_min, u_max)
+    return _result(lax.while_loop(lambda s: ~s.done, trip, init))
+
+
+def ilqr_best_of(
+    step: StepFn,
+    cost: CostFn,
+    x0: Array,
+    U_inits: Array,
+    config: ILQRConfig = ILQRConfig(),
+    *,
+    u_min: Array | None = None,
+    u_max: Array | None = None,
+) -> tuple[ILQRResult, Array, ILQRResult]:
+    """:func:`ilqr` from ``x0: [dX]`` and each of the initial sequences ``U_inits: [R, T, dU]``,
+    side by side in one loop, keeping the cheapest finished run -> (that run's ILQRResult, its
+    index, every run's ILQRResult [R]).
+
+    A run stops early, with status :data:`BEATEN`, once another run has finished (any status,
+    finite cost) at a lower cost and this one has had as many trips: equal effort, and the
+    dearer one is dropped. Why: the runs of one vmapped loop end together, when the slowest
+    ends, and the runs differ by orders of magnitude — balancing gymnasium's double pendulum,
+    iLQR from the goal's LQR converges in 0–2 iterations, from zero actions (the system falls)
+    in 47–100, and that run is then discarded. Its cost can only decide the choice if it falls
+    below the finished run's, and after the same number of trips it had not; a run that is
+    ahead, or has had fewer trips, goes on. What this gives up: a run that is dearer after equal
+    effort but would end cheaper (iLQR's runs to different local optima can cross); the runs of
+    :func:`ilqr` from each sequence separately keep that chance, at the slowest run's time.
+    A run never stops on a tie, so identical initial sequences both run to the end.
+    """
+    if U_inits.ndim != 3:
+        raise ValueError(f"ilqr_best_of: U_inits must be [R, T, dU], got {tuple(U_inits.shape)}")
+    R = U_inits.shape[0]
+    loop = lambda U: _ilqr_loop(step, cost, x0, U, config, u_min, u_max)
+    init = jax.vmap(lambda U: loop(U)[0])(U_inits)
+    trip = loop(U_inits[0])[1]  # a function of the state alone: the same for every run
+    others = ~jnp.eye(R, dtype=bool)
+
+    def race(S: _Loop) -> _Loop:
+        new = jax.vmap(trip)(S)
+        keep = lambda old, upd: jnp.where(S.done.reshape((R,) + (1,) * (upd.ndim - 1)), old, upd)
+        new = jax.tree.map(keep, S, new)
+        finished = new.done & jnp.isfinite(new.J)
+        beats = (  # beats[r, q]: run q finished cheaper than run r, which has had as many trips
+            others
+            & finished[None, :]
+            & (new.J[None, :] < new.J[:, None])
+            & (new.trip[:, None] >= new.trip[None, :])
+        )
+        beaten = ~new.done & jnp.any(beats, axis=1)
+        return new.replace(done=new.done | beaten, status=jnp.where(beaten, BEATEN, new.status))
+
+    final = lax.while_loop(lambda S: ~jnp.all(S.done), race, init)
+    runs = jax.vmap(_result)(final)
+    costs = jnp.where(jnp.isfinite(runs.cost), runs.cost, jnp.inf)
+    best = jnp.argmin(costs)
+    return jax.tree.map(lambda a: a[best], runs), best, runs
+
+
+def _ilqr_loop(step, cost, x0, U_init, config, u_min, u_max) -> tuple[_Loop, Callable]:
+    """:func:`ilqr`'s loop: (the state before trip 0, one trip ``_Loop -> _Loop``). A trip on a
+    state that is already ``done`` runs no line search (its result is discarded: under ``vmap``
+    a finished lane would otherwise hold the line search's loop for the others)."""
     T, dU = U_init.shape
     dX = x0.shape[-1]
     dtype = x0.dtype
@@ -350,7 +418,7 @@ def ilqr(
 
         def cond(c):
             i, accepted = c[0], c[1]
-            return (~accepted) & (i < config.line_search_steps) & b.ok
+            return (~accepted) & (i < config.line_search_steps) & b.ok & ~s.done
 
         def body(c):
             i, _, X_best, U_best, J_best = c
@@ -453,7 +521,10 @@ def ilqr(
         status=jnp.asarray(MAX_ITERATIONS, jnp.int32),
         history=jnp.full((n_hist,), jnp.nan, dtype),
     )
-    s = lax.while_loop(lambda s: ~s.done, trip, init)
+    return init, trip
+
+
+def _result(s: _Loop) -> ILQRResult:
     return ILQRResult(
         X=s.X,
         U=s.U,
