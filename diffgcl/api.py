@@ -101,7 +101,8 @@ def expert_demos(
     from a small constant action either way on each actuator,
     :func:`diffgcl.algorithms.trajopt.solve_restarts`; else from ``initial``, by default
     ``"best"``: iLQR from zero actions and from the goal's LQR, keeping per start the cheaper
-    solution, so that an unstable system is balanced rather than left to fall;
+    solution, so that an unstable system is balanced rather than left to fall (the dearer run
+    stops once the other has finished cheaper after as many iterations);
     ``"zeros"`` or ``"goal_lqr"`` runs one of them, see
     :func:`diffgcl.algorithms.trajopt.solve`), then ``per_start`` noisy rollouts of
     each solution's closed-loop controller ``u ~ N(K x + k, Σ_t)``, white noise. ``Σ_t`` has the

@@ -35,6 +35,7 @@ from diffgcl.control.ilqr import (
     cost_minimiser,
     goal_lqr_actions,
     ilqr,
+    ilqr_best_of,
     ilqr_controller,
     squared_residual,
 )
@@ -59,8 +60,10 @@ INITIAL_ACTIONS = ("zeros", "goal_lqr", "best")
 # --mjcf``, :func:`make_gps_from_ilqr`): the better of zero actions and the goal's LQR. From zero
 # actions an unstable system falls at once and iLQR settles on a swinging local optimum
 # (gymnasium's double pendulum: 0 of 8 starts balanced); the goal's LQR means little where the
-# goal is no equilibrium at zero action (a fingertip on a target), and there zero actions win.
-# Twice iLQR's run time, in one program. :func:`solve` itself keeps zero actions by default: it
+# goal is no equilibrium at zero action (a fingertip on a target). Both run side by side in one
+# program, and the dearer run stops once the other has finished cheaper after as many
+# iterations (:func:`~diffgcl.control.ilqr.ilqr_best_of`), so a balance found at once is not
+# held up by the fall from zero actions. :func:`solve` itself keeps zero actions by default: it
 # is the algorithm, this is the expert's choice.
 EXPERT_INITIAL = "best"
 
@@ -85,8 +88,9 @@ def solve(
     initial: where iLQR starts when ``U_init`` is None — ``"zeros"``; ``"goal_lqr"``, the
     rollout of the LQR of the dynamics linearised at the goal
     (:func:`~diffgcl.control.ilqr.goal_lqr_actions`: for balancing an unstable system, which
-    falls under zero actions); ``"best"``, both, keeping per start the lower final cost (one
-    program, twice the run time).
+    falls under zero actions); ``"best"``, both side by side, keeping per start the cheaper
+    (:func:`~diffgcl.control.ilqr.ilqr_best_of`: a run dearer than the other's finished one
+    after as many trips stops there).
     goal: [dX] or [C, dX], the state the LQR stabilises (default: where the terminal cost is
     lowest, :func:`~diffgcl.control.ilqr.cost_minimiser` from each start).
     Returns an :class:`~diffgcl.control.ilqr.ILQRResult` with leading axis C.
@@ -113,9 +117,9 @@ def solve(
     U_lqr = goal_lqr_starts(env, true_cost, x0, goal, limits=limits)
     if initial == "goal_lqr":
         return run(x0, U_lqr)
-    U = jnp.stack([jnp.zeros_like(U_lqr), U_lqr])  # [2, C, T, dU]
-    results = jax.vmap(run, in_axes=(None, 0))(x0, U)  # fields [2, C, ...]
-    return _lowest_cost(results)[0]
+    U = jnp.stack([jnp.zeros_like(U_lqr), U_lqr], axis=1)  # [C, 2, T, dU]
+    race = lambda x, u: ilqr_best_of(env.step, cost, x, u, config, u_min=u_min, u_max=u_max)[0]
+    return jax.vmap(race)(x0, U)
 
 
 def goal_lqr_starts(
@@ -137,7 +141,7 @@ def goal_lqr_starts(
     return jax.vmap(lqr)(x0, goals)
 
 
-def _lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:
+def lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:
     """Per start, the run of ``results`` (fields [R, C, ...]) with the lowest finite final cost
     -> (ILQRResult [C], the index of that run [C])."""
     costs = jnp.where(jnp.isfinite(results.cost), results.cost, jnp.inf)
@@ -164,7 +168,9 @@ def solve_restarts(
     scale: float = 0.1,
 ) -> tuple[ILQRResult, Array, Array]:
     """iLQR from each start state and each of :func:`restart_actions`' initial action sequences
-    (one program: vmapped over both), keeping per start the lowest final cost.
+    (one program: vmapped over both), keeping per start the lowest final cost. Every run goes to
+    its own end (unlike ``solve(..., initial="best")``, no run is stopped early): a user asking
+    for restarts asks for the wider search.
 
     Why: a cost that is not convex in the actions has stationary points that zero actions sit on
     by symmetry — gymnasium's reacher with the target behind the arm: the fingertip distance's
@@ -176,7 +182,7 @@ def solve_restarts(
     x0 = jnp.atleast_2d(x0)
     U = restart_actions(env.horizon, env.dU, scale, x0.dtype)
     results = jax.vmap(lambda u: solve(env, cost, x0, u, config))(U)  # fields [R, C, ...]
-    kept, best = _lowest_cost(results)
+    kept, best = lowest_cost(results)
     return kept, best, results
 
 
