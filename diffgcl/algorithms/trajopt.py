@@ -32,6 +32,7 @@ from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams, GPSMetrics, GPSSta
 from diffgcl.control.ilqr import (
     ILQRConfig,
     ILQRResult,
+    cheapest_run,
     cost_minimiser,
     goal_lqr_actions,
     ilqr,
@@ -144,10 +145,7 @@ def goal_lqr_starts(
 def lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:
     """Per start, the run of ``results`` (fields [R, C, ...]) with the lowest finite final cost
     -> (ILQRResult [C], the index of that run [C])."""
-    costs = jnp.where(jnp.isfinite(results.cost), results.cost, jnp.inf)
-    best = jnp.argmin(costs, axis=0)  # [C]
-    pick = jax.vmap(lambda c, i: jax.tree.map(lambda a: a[i, c], results), (0, 0))
-    return pick(jnp.arange(costs.shape[1]), best), best
+    return jax.vmap(cheapest_run, in_axes=1)(results)
 
 
 def restart_actions(T: int, dU: int, scale: float, dtype=None) -> Array:

@@ -373,9 +373,16 @@ def ilqr_best_of(
 
     final = lax.while_loop(lambda S: ~jnp.all(S.done), race, init)
     runs = jax.vmap(_result)(final)
+    kept, best = cheapest_run(runs)
+    return kept, best, runs
+
+
+def cheapest_run(runs: ILQRResult) -> tuple[ILQRResult, Array]:
+    """Of runs from one start (fields [R, ...]), the one with the lowest finite final cost ->
+    (its ILQRResult, its index); vmap over further axes."""
     costs = jnp.where(jnp.isfinite(runs.cost), runs.cost, jnp.inf)
     best = jnp.argmin(costs)
-    return jax.tree.map(lambda a: a[best], runs), best, runs
+    return jax.tree.map(lambda a: a[best], runs), best
 
 
 def _ilqr_loop(step, cost, x0, U_init, config, u_min, u_max) -> tuple[_Loop, Callable]:
