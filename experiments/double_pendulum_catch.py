@@ -1,0 +1,354 @@
+"""Can any action sequence within the actuator's range catch a double-pendulum start? (IPOPT)
+
+A reference for ``experiments/trajopt_gym.py --models double_pendulum``: for each start (the
+same starts, NumPy ``default_rng(seed)``, hinge angles 3× gymnasium's), it looks for actions
+within ``ctrlrange`` (±1) that pass the task's success test — the tip above 1 m at every step,
+and the cart within 0.1 m, the hinges within 0.05 rad over the last 10 of 100 steps — by direct
+multiple shooting: the states and actions of all 100 steps are the unknowns, the step function
+an equality constraint, the success test's bounds inequality constraints, the task's cost
+(``DOUBLE_WEIGHTS``) the objective, solved by IPOPT (through CasADi) from a straight line of
+states from the start to upright. The cart is kept within ``--rail`` (0.98 m: inside the
+slider's limit, 1 m less its 0.01 m margin, so MuJoCo's end stop never acts). A start IPOPT
+cannot solve there is solved again with the rail bound loosened and then tightened step by step
+(2 m down to ``--rail``, each warm-started from the last), and the smallest bound met is
+reported. IPOPT is a local method: a start it does not solve may still be catchable, and the end
+stop (which this model leaves out) pushes harder than the motor.
+
+Every solution is replayed in C MuJoCo (``mujoco.MjModel`` of the same file) with a
+time-varying LQR that tracks it (an unstable system's open-loop actions diverge from any
+trajectory within a second), and judged by the same success test.
+
+The step function is the MJCF's cart and two links written out symbolically (masses, inertias,
+centres of mass, joint damping, gear, gravity and timestep read from the ``MjModel``; RK4,
+frame skip 5), checked against C MuJoCo's step before anything else (the largest difference
+over random 10-step rollouts is printed; the script stops above 10⁻⁶).
+
+``--sqp`` also runs a multiple-shooting SQP written here in NumPy (Gauss-Newton, the LQ
+subproblem with the shooting gaps solved by a Riccati sweep, actions clamped to the box, an ℓ1
+merit on the gaps) from the same straight line, on C MuJoCo's own step (central finite
+differences, end stops included; ``--sqp-on symbolic``: the symbolic model, no rail), with a
+penalty ``--rail-penalty·max(0, |x| − --rail)²`` on
+the cart's position (0: none): the prototype of a solver that could replace iLQR's single
+shooting where iLQR falls into local optima.
+
+Needs CasADi, which is not a dependency of the project (``pip install casadi``); without it the
+script says so and stops.
+
+    python experiments/double_pendulum_catch.py --seeds 1,2,3,4,5,6,7 --json runs/dp_catch.json
+    python experiments/double_pendulum_catch.py --keys 4:4,5:4 --sqp --rail-penalty 1e4
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import mujoco
+import numpy as np
+from trajopt_gym import DOUBLE_WEIGHTS, TASKS, double_success, gym_asset
+
+FRAME_SKIP = 5
+T = 100
+RAIL_PATH = (2.0, 1.7, 1.5, 1.4, 1.3, 1.2, 1.1, 1.05, 1.0)
+
+
+class Plant:
+    """gymnasium's inverted double pendulum: C MuJoCo, and the same model written for CasADi."""
+
+    def __init__(self, ca):
+        self.ca = ca
+        path = gym_asset("inverted_double_pendulum.xml")
+        m = self.model = mujoco.MjModel.from_xml_path(str(path))
+        self.data = mujoco.MjData(m)
+        slide, hinge, hinge2 = (mujoco.mjtJoint.mjJNT_SLIDE, mujoco.mjtJoint.mjJNT_HINGE,
+                                mujoco.mjtJoint.mjJNT_HINGE)  # fmt: skip
+        if list(m.jnt_type) != [slide, hinge, hinge2] or m.nbody != 4 or m.nu != 1:
+            raise SystemExit("expected a cart on a slider with two hinged links and one actuator")
+        if m.opt.integrator != mujoco.mjtIntegrator.mjINT_RK4:
+            raise SystemExit("expected the RK4 integrator")
+        q = ca.SX.sym("q", 3)
+        qd = ca.SX.sym("qd", 3)
+        u = ca.SX.sym("u")
+        g = m.opt.gravity  # world (x, y, z); the model moves in the x-z plane
+        mc, m1, m2 = m.body_mass[1:4]
+        c1, c2 = m.body_ipos[2, 2], m.body_ipos[3, 2]  # centres of mass along each link
+        length = m.body_pos[3, 2]  # the second hinge's height on the first link
+        i1, i2 = m.body_inertia[2, 1], m.body_inertia[3, 1]  # about each link's y axis
+        a, phi = q[1], q[1] + q[2]
+        p1 = ca.vertcat(q[0] + c1 * ca.sin(a), c1 * ca.cos(a))
+        p2 = ca.vertcat(q[0] + length * ca.sin(a) + c2 * ca.sin(phi),
+                        length * ca.cos(a) + c2 * ca.cos(phi))  # fmt: skip
+        v1, v2 = ca.jtimes(p1, q, qd), ca.jtimes(p2, q, qd)
+        kinetic = (0.5 * mc * qd[0] ** 2 + 0.5 * m1 * ca.dot(v1, v1) + 0.5 * i1 * qd[1] ** 2
+                   + 0.5 * m2 * ca.dot(v2, v2) + 0.5 * i2 * (qd[1] + qd[2]) ** 2)  # fmt: skip
+        potential = -(m1 * (g[0] * p1[0] + g[2] * p1[1]) + m2 * (g[0] * p2[0] + g[2] * p2[1])
+                      + mc * g[0] * q[0])  # fmt: skip
+        mass = ca.hessian(kinetic, qd)[0]
+        bias = (ca.jacobian(ca.gradient(kinetic, qd), q) @ qd - ca.gradient(kinetic, q)
+                + ca.gradient(potential, q))  # fmt: skip
+        force = ca.vertcat(m.actuator_gear[0, 0] * u, 0, 0) - m.dof_damping * qd
+        qdd = ca.solve(mass, force - bias)
+        f = ca.Function("f", [ca.vertcat(q, qd), u], [ca.vertcat(qd, qdd)])
+        s = ca.SX.sym("s", 6)
+        h = m.opt.timestep
+        z = s
+        for _ in range(FRAME_SKIP):
+            k1 = f(z, u)
+            k2 = f(z + h / 2 * k1, u)
+            k3 = f(z + h / 2 * k2, u)
+            k4 = f(z + h * k3, u)
+            z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        self.step_sx = ca.Function("step", [s, u], [z])
+        self.jac = ca.Function("AB", [s, u], [ca.jacobian(z, s), ca.jacobian(z, u)])
+        self.u_lo, self.u_hi = m.actuator_ctrlrange[0]
+
+    def mj_step(self, x, u):
+        m, d = self.model, self.data
+        mujoco.mj_resetData(m, d)
+        d.qpos[:], d.qvel[:], d.ctrl[:] = x[:3], x[3:], u
+        for _ in range(FRAME_SKIP):
+            mujoco.mj_step(m, d)
+        return np.concatenate([d.qpos, d.qvel])
+
+    def mj_jacobians(self, x, u, eps=1e-6):
+        A = np.stack([(self.mj_step(x + e, u) - self.mj_step(x - e, u)) / (2 * eps)
+                      for e in eps * np.eye(6)], axis=1)  # fmt: skip
+        B = (self.mj_step(x, u + eps) - self.mj_step(x, u - eps)) / (2 * eps)
+        return A, B
+
+    def model_error(self, starts, rng) -> float:
+        """Largest |symbolic − C MuJoCo| over 10-step rollouts with random actions, inside the
+        rail (where the end stop does not act)."""
+        err = 0.0
+        for x0 in starts:
+            x_mj = x_sym = np.asarray(x0, float)
+            for u in rng.uniform(self.u_lo, self.u_hi, 10):
+                x_mj = self.mj_step(x_mj, u)
+                x_sym = np.asarray(self.step_sx(x_sym, u)).ravel()
+                if abs(x_mj[0]) > 0.95:
+                    break
+                err = max(err, float(np.abs(x_mj - x_sym).max()))
+        return err
+
+    def track(self, x0, X, U):
+        """C MuJoCo rollout of ``u = clip(U + K (x − X))``, K a time-varying LQR about (X, U)."""
+        Q, R = np.diag([10.0, 100, 100, 1, 1, 1]), np.array([[0.01]])
+        P, K = Q.copy(), np.zeros((T, 6))
+        for t in reversed(range(T)):
+            A, B = (np.asarray(a) for a in self.jac(X[t], U[t]))
+            K[t] = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)[0]
+            P = Q + A.T @ P @ (A - B @ K[t][None])
+        xs = [np.asarray(x0, float)]
+        for t in range(T):
+            u = float(np.clip(U[t] - K[t] @ (xs[-1] - X[t]), self.u_lo, self.u_hi))
+            xs.append(self.mj_step(xs[-1], u))
+        return np.asarray(xs)
+
+
+def tip(X):
+    return 0.6 * np.cos(X[..., 1]) + 0.6 * np.cos(X[..., 1] + X[..., 2])
+
+
+def weights():
+    q_x, q_th, q_v, r = DOUBLE_WEIGHTS
+    return np.array([q_x, q_th, q_th, q_v, q_v, q_v]), r
+
+
+class CatchNLP:
+    """IPOPT on the success test's constraints with the task's cost; the rail bound a parameter."""
+
+    def __init__(self, plant, x0):
+        ca = plant.ca
+        w, r = weights()
+        opti = self.opti = ca.Opti()
+        X, U = self.X, self.U = opti.variable(6, T + 1), opti.variable(1, T)
+        self.rail = opti.parameter()
+        opti.subject_to(X[:, 0] == x0)
+        J = 0
+        for t in range(T):
+            opti.subject_to(X[:, t + 1] == plant.step_sx(X[:, t], U[t]))
+            J += 0.5 * ca.sumsqr(np.sqrt(w) * X[:, t]) + 0.5 * r * U[t] ** 2
+        J += 0.5 * ca.sumsqr(np.sqrt(w) * X[:, T])
+        self.J = J
+        opti.subject_to(0.6 * ca.cos(X[1, 1:]) + 0.6 * ca.cos(X[1, 1:] + X[2, 1:]) >= 1.001)
+        opti.subject_to(opti.bounded(-self.rail, X[0, :], self.rail))
+        opti.subject_to(opti.bounded(plant.u_lo, U, plant.u_hi))
+        for i, bound in enumerate((0.09, 0.045, 0.045)):
+            opti.subject_to(opti.bounded(-bound, X[i, T - 9 :], bound))
+        opti.minimize(J)
+        opti.solver("ipopt", {"print_time": False},
+                    {"max_iter": 1000, "print_level": 0, "tol": 1e-7})  # fmt: skip
+        self.guess = (np.linspace(1.0, 0.0, T + 1)[:, None] * np.asarray(x0)[None], np.zeros(T))
+
+    def solve(self, rail):
+        """Solve at ``rail`` from the current guess; a solution becomes the next guess."""
+        o = self.opti
+        o.set_value(self.rail, rail)
+        o.set_initial(self.X, self.guess[0].T)
+        o.set_initial(self.U, self.guess[1][None])
+        try:
+            sol = o.solve()
+        except RuntimeError:
+            return False
+        self.guess = (np.asarray(sol.value(self.X)).T, np.asarray(sol.value(self.U)).ravel())
+        self.cost = float(sol.value(self.J))
+        return True
+
+
+def catch(plant, x0, rail):
+    """(solved at ``rail``, the smallest rail bound met on the path, cost, X, U)."""
+    nlp = CatchNLP(plant, x0)
+    if nlp.solve(rail):
+        return True, rail, nlp.cost, *nlp.guess
+    met = None
+    for bound in (b for b in RAIL_PATH if b > rail):
+        if not nlp.solve(bound):
+            break
+        met = bound
+    if met is not None and met == min(b for b in RAIL_PATH if b > rail) and nlp.solve(rail):
+        return True, rail, nlp.cost, *nlp.guess
+    return False, met, None, None, None
+
+
+def sqp(plant, x0, rail, penalty, on="mujoco", iterations=200):
+    """Multiple-shooting SQP from the straight line -> (X, U, iterations, largest gap left), on
+    C MuJoCo's step (``on="mujoco"``: end stops included, central finite differences) or on the
+    symbolic model (``"symbolic"``: no rail)."""
+    w, r = weights()
+    if on == "mujoco":
+        step, jacobians = plant.mj_step, plant.mj_jacobians
+    else:
+        step = lambda x, u: np.asarray(plant.step_sx(x, u)).ravel()
+        jacobians = lambda x, u: tuple(np.asarray(a) for a in plant.jac(x, u))
+    lo, hi = plant.u_lo, plant.u_hi
+
+    def l_x(x):
+        g = w * x
+        g[0] += 2 * penalty * max(abs(x[0]) - rail, 0.0) * np.sign(x[0])
+        return g
+
+    def l_xx(x):
+        H = np.diag(w)
+        H[0, 0] += 2 * penalty * (abs(x[0]) > rail)
+        return H
+
+    def cost(X, U):
+        over = np.maximum(np.abs(X[:, 0]) - rail, 0.0)
+        return 0.5 * np.sum(w * X**2) + 0.5 * r * np.sum(U**2) + penalty * np.sum(over**2)
+
+    def gaps_of(X, U):
+        return np.array([step(X[t], U[t]) for t in range(T)]) - X[1:]
+
+    X = np.linspace(1.0, 0.0, T + 1)[:, None] * np.asarray(x0)[None]
+    U, nu, mu, n = np.zeros(T), 100.0, 1e-8, 0
+    while n < iterations:
+        n += 1
+        gaps = gaps_of(X, U)
+        AB = [
+            tuple(np.reshape(a, (6, -1)).squeeze() for a in jacobians(X[t], U[t])) for t in range(T)
+        ]
+        P, p = l_xx(X[T]), l_x(X[T])
+        k, K = np.zeros(T), np.zeros((T, 6))
+        for t in reversed(range(T)):
+            A, B = AB[t]
+            pg = p + P @ gaps[t]
+            Qx, Qu = l_x(X[t]) + A.T @ pg, r * U[t] + B @ pg
+            Qxx, Quu, Qux = l_xx(X[t]) + A.T @ P @ A, r + B @ P @ B + mu, B @ P @ A
+            newton = -Qu / Quu
+            if lo - U[t] < newton < hi - U[t]:
+                k[t], K[t] = newton, -Qux / Quu
+            else:
+                k[t] = np.clip(newton, lo - U[t], hi - U[t])
+            P = Qxx + Quu * np.outer(K[t], K[t]) + np.outer(K[t], Qux) + np.outer(Qux, K[t])
+            P = 0.5 * (P + P.T)
+            p = Qx + Quu * K[t] * k[t] + K[t] * Qu + Qux * k[t]
+        dX, dU = np.zeros_like(X), np.zeros(T)
+        for t in range(T):
+            A, B = AB[t]
+            dU[t] = k[t] + K[t] @ dX[t]
+            dX[t + 1] = A @ dX[t] + B * dU[t] + gaps[t]
+        gap = np.abs(gaps).sum()
+        slope = sum(l_x(X[t]) @ dX[t] for t in range(T + 1)) + r * U @ dU
+        if gap > 1e-9:
+            nu = max(nu, 2 * abs(slope) / gap)
+        merit0 = cost(X, U) + nu * gap
+        alpha, accepted = 1.0, False
+        for _ in range(20):
+            X1, U1 = X + alpha * dX, np.clip(U + alpha * dU, lo, hi)
+            merit1 = cost(X1, U1) + nu * np.abs(gaps_of(X1, U1)).sum()
+            if np.isfinite(merit1) and merit1 <= merit0 + 1e-4 * alpha * (slope - nu * gap):
+                accepted = True
+                break
+            alpha /= 2
+        if accepted:
+            X, U, mu = X1, U1, max(mu / 4, 1e-10)
+        else:
+            mu *= 10
+        if accepted and gap < 1e-8 and np.abs(alpha * dU).max() < 1e-7:
+            break
+    return X, U, n, float(np.abs(gaps_of(X, U)).max())
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seeds", default="1,2,3,4,5,6,7")
+    parser.add_argument("--starts", type=int, default=8)
+    parser.add_argument("--keys", default=None, help="SEED:START,... instead of every start")
+    parser.add_argument("--rail", type=float, default=0.98)
+    parser.add_argument("--sqp", action="store_true")
+    parser.add_argument("--sqp-on", choices=("mujoco", "symbolic"), default="mujoco")
+    parser.add_argument("--rail-penalty", type=float, default=0.0)
+    parser.add_argument("--json", type=Path, default=None)
+    args = parser.parse_args(argv)
+    try:
+        import casadi
+    except ImportError:
+        print("CasADi is not installed (pip install casadi): nothing to run.", file=sys.stderr)
+        return 1
+    plant = Plant(casadi)
+    if args.keys:
+        keys = [tuple(map(int, k.split(":"))) for k in args.keys.split(",")]
+    else:
+        keys = [(s, i) for s in map(int, args.seeds.split(",")) for i in range(args.starts)]
+    starts = {s: TASKS["double_pendulum"].starts(np.random.default_rng(s), args.starts)
+              for s in {k[0] for k in keys}}  # fmt: skip
+    err = plant.model_error([starts[s][i] for s, i in keys[:20]], np.random.default_rng(0))
+    print(f"symbolic model vs C MuJoCo, largest state difference over 10 steps: {err:.1e}")
+    if err > 1e-6:
+        raise SystemExit("the symbolic model does not match the MJCF")
+    rows = []
+    for s, i in keys:
+        x0 = starts[s][i]
+        t0 = time.perf_counter()
+        solved, met, cost, X, U = catch(plant, x0, args.rail)
+        row = {"seed": s, "start": i, "tip0": round(float(tip(x0)), 4), "ipopt_solved": solved,
+               "smallest_rail_met": met, "ipopt_cost": cost}  # fmt: skip
+        if solved:
+            Xm = plant.track(x0, X, U)
+            row.update(caught_in_mujoco=bool(double_success(Xm)),
+                       min_tip=round(float(tip(Xm).min()), 4),
+                       max_cart=round(float(np.abs(Xm[:, 0]).max()), 4))  # fmt: skip
+        row["ipopt_s"] = round(time.perf_counter() - t0, 1)
+        if args.sqp:
+            t0 = time.perf_counter()
+            Xs, Us, n, gap = sqp(plant, x0, args.rail, args.rail_penalty, args.sqp_on)
+            Xm = plant.track(x0, Xs, Us)
+            row.update(sqp_on=args.sqp_on, sqp_max_cart=round(float(np.abs(Xs[:, 0]).max()), 4),
+                       sqp_min_tip=round(float(tip(Xs).min()), 4),
+                       sqp_iterations=n, sqp_gap=gap, sqp_caught_in_mujoco=bool(double_success(Xm)),
+                       sqp_s=round(time.perf_counter() - t0, 1))  # fmt: skip
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+    caught = sum(r.get("caught_in_mujoco", False) for r in rows)
+    print(f"caught (IPOPT within ±{args.rail} m, replayed in C MuJoCo): {caught}/{len(rows)}")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps({"rail": args.rail, "rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
