@@ -213,10 +213,11 @@ def catch(plant, x0, rail):
     return False, met, None, None, None
 
 
-def sqp(plant, x0, rail, penalty, on="mujoco", iterations=200):
+def sqp(plant, x0, rail, penalty, on="mujoco", terminal=1.0, iterations=200):
     """Multiple-shooting SQP from the straight line -> (X, U, iterations, largest gap left), on
     C MuJoCo's step (``on="mujoco"``: end stops included, central finite differences) or on the
-    symbolic model (``"symbolic"``: no rail)."""
+    symbolic model (``"symbolic"``: no rail). ``terminal`` multiplies the last state's cost
+    weights."""
     w, r = weights()
     if on == "mujoco":
         step, jacobians = plant.mj_step, plant.mj_jacobians
@@ -237,7 +238,8 @@ def sqp(plant, x0, rail, penalty, on="mujoco", iterations=200):
 
     def cost(X, U):
         over = np.maximum(np.abs(X[:, 0]) - rail, 0.0)
-        return 0.5 * np.sum(w * X**2) + 0.5 * r * np.sum(U**2) + penalty * np.sum(over**2)
+        ends = 0.5 * (terminal - 1.0) * np.sum(w * X[T] ** 2)
+        return 0.5 * np.sum(w * X**2) + ends + 0.5 * r * np.sum(U**2) + penalty * np.sum(over**2)
 
     def gaps_of(X, U):
         return np.array([step(X[t], U[t]) for t in range(T)]) - X[1:]
@@ -250,7 +252,7 @@ def sqp(plant, x0, rail, penalty, on="mujoco", iterations=200):
         AB = [
             tuple(np.reshape(a, (6, -1)).squeeze() for a in jacobians(X[t], U[t])) for t in range(T)
         ]
-        P, p = l_xx(X[T]), l_x(X[T])
+        P, p = l_xx(X[T]) + (terminal - 1.0) * np.diag(w), l_x(X[T]) + (terminal - 1.0) * w * X[T]
         k, K = np.zeros(T), np.zeros((T, 6))
         for t in reversed(range(T)):
             A, B = AB[t]
@@ -272,6 +274,7 @@ def sqp(plant, x0, rail, penalty, on="mujoco", iterations=200):
             dX[t + 1] = A @ dX[t] + B * dU[t] + gaps[t]
         gap = np.abs(gaps).sum()
         slope = sum(l_x(X[t]) @ dX[t] for t in range(T + 1)) + r * U @ dU
+        slope += (terminal - 1.0) * (w * X[T]) @ dX[T]
         if gap > 1e-9:
             nu = max(nu, 2 * abs(slope) / gap)
         merit0 = cost(X, U) + nu * gap
@@ -301,6 +304,7 @@ def main(argv=None) -> int:
     parser.add_argument("--sqp", action="store_true")
     parser.add_argument("--sqp-on", choices=("mujoco", "symbolic"), default="mujoco")
     parser.add_argument("--rail-penalty", type=float, default=0.0)
+    parser.add_argument("--terminal-weight", type=float, default=1.0, help="--sqp's last state")
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     try:
@@ -334,7 +338,9 @@ def main(argv=None) -> int:
         row["ipopt_s"] = round(time.perf_counter() - t0, 1)
         if args.sqp:
             t0 = time.perf_counter()
-            Xs, Us, n, gap = sqp(plant, x0, args.rail, args.rail_penalty, args.sqp_on)
+            Xs, Us, n, gap = sqp(
+                plant, x0, args.rail, args.rail_penalty, args.sqp_on, args.terminal_weight
+            )
             Xm = plant.track(x0, Xs, Us)
             row.update(sqp_on=args.sqp_on, sqp_max_cart=round(float(np.abs(Xs[:, 0]).max()), 4),
                        sqp_min_tip=round(float(tip(Xs).min()), 4),
