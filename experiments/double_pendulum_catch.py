@@ -23,6 +23,14 @@ centres of mass, joint damping, gear, gravity and timestep read from the ``MjMod
 frame skip 5), checked against C MuJoCo's step before anything else (the largest difference
 over random 10-step rollouts is printed; the script stops above 10⁻⁶).
 
+``--stops``: for a start not solved within ``--rail``, IPOPT again on the model with MuJoCo's
+end stops written in (its soft limit constraint: reference acceleration, impedance, regulariser
+from the joint's solref, solimp and margin; checked against C MuJoCo on runs into the stops),
+warm-started from the solution at the smallest bound met, the cart within 1.1 m. The stop's
+force is not smooth (it switches on within the margin and is clipped at zero), which IPOPT's
+Newton steps do not handle well: a status other than ``Solve_Succeeded`` there is no evidence
+either way.
+
 ``--sqp`` also runs a multiple-shooting SQP written here in NumPy (Gauss-Newton, the LQ
 subproblem with the shooting gaps solved by a Riccati sweep, actions clamped to the box, an ℓ1
 merit on the gaps) from the same straight line, on C MuJoCo's own step (central finite
@@ -35,6 +43,7 @@ Needs CasADi, which is not a dependency of the project (``pip install casadi``);
 script says so and stops.
 
     python experiments/double_pendulum_catch.py --seeds 1,2,3,4,5,6,7 --json runs/dp_catch.json
+    python experiments/double_pendulum_catch.py --keys 3:6,7:5 --stops
     python experiments/double_pendulum_catch.py --keys 4:4,5:4 --sqp --rail-penalty 1e4
 """
 
@@ -86,23 +95,48 @@ class Plant:
                    + 0.5 * m2 * ca.dot(v2, v2) + 0.5 * i2 * (qd[1] + qd[2]) ** 2)  # fmt: skip
         potential = -(m1 * (g[0] * p1[0] + g[2] * p1[1]) + m2 * (g[0] * p2[0] + g[2] * p2[1])
                       + mc * g[0] * q[0])  # fmt: skip
-        mass = ca.hessian(kinetic, qd)[0]
+        mass_inv = ca.inv(ca.hessian(kinetic, qd)[0])
         bias = (ca.jacobian(ca.gradient(kinetic, qd), q) @ qd - ca.gradient(kinetic, q)
                 + ca.gradient(potential, q))  # fmt: skip
         force = ca.vertcat(m.actuator_gear[0, 0] * u, 0, 0) - m.dof_damping * qd
-        qdd = ca.solve(mass, force - bias)
-        f = ca.Function("f", [ca.vertcat(q, qd), u], [ca.vertcat(qd, qdd)])
+        qdd = mass_inv @ (force - bias)
+        # The slider's end stops: MuJoCo's soft limit constraint, one per end, active within the
+        # joint's margin of its range: aref = −b·Jv − k·d(r)·r, r = distance − margin, d the
+        # solimp impedance, R = (1 − d)/d · dof_invweight0, force max(0, (aref − J·a₀)/(A + R)).
+        (timeconst, dampratio), (dmin, dmax, width, mid, power) = m.jnt_solref[0], m.jnt_solimp[0]
+        timeconst = max(timeconst, 2 * m.opt.timestep)  # MuJoCo's own floor
+        b, k = 2 / (dmax * timeconst), 1 / (dmax * timeconst * dampratio) ** 2
+        lo, hi = m.jnt_range[0]
+        qdd_stops = qdd
+        for J, distance in ((-1.0, hi - q[0]), (1.0, q[0] - lo)):
+            r = distance - m.jnt_margin[0]
+            x = ca.fmin(ca.fabs(r) / width, 1)
+            y = ca.if_else(x <= mid, x**power / mid ** (power - 1),
+                           1 - (1 - x) ** power / (1 - mid) ** (power - 1))  # fmt: skip
+            d = dmin + y * (dmax - dmin)
+            aref = -b * J * qd[0] - k * d * r
+            stiffness = mass_inv[0, 0] + (1 - d) / d * m.dof_invweight0[0]
+            push = ca.fmax(0, (aref - J * qdd[0]) / stiffness)
+            qdd_stops = qdd_stops + ca.if_else(r < 0, 1, 0) * mass_inv[:, 0] * J * push
         s = ca.SX.sym("s", 6)
         h = m.opt.timestep
-        z = s
-        for _ in range(FRAME_SKIP):
-            k1 = f(z, u)
-            k2 = f(z + h / 2 * k1, u)
-            k3 = f(z + h / 2 * k2, u)
-            k4 = f(z + h * k3, u)
-            z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        self.step_sx = ca.Function("step", [s, u], [z])
-        self.jac = ca.Function("AB", [s, u], [ca.jacobian(z, s), ca.jacobian(z, u)])
+        steps = []
+        for acc in (qdd, qdd_stops):
+            f = ca.Function("f", [ca.vertcat(q, qd), u], [ca.vertcat(qd, acc)])
+            z = s
+            for _ in range(FRAME_SKIP):
+                k1 = f(z, u)
+                k2 = f(z + h / 2 * k1, u)
+                k3 = f(z + h / 2 * k2, u)
+                k4 = f(z + h * k3, u)
+                z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            steps.append(z)
+        self.step_sx = ca.Function("step", [s, u], [steps[0]])
+        self.step_stops = ca.Function("step_stops", [s, u], [steps[1]])
+        self.jac = ca.Function("AB", [s, u], [ca.jacobian(steps[0], s), ca.jacobian(steps[0], u)])
+        self.jac_stops = ca.Function(
+            "AB_stops", [s, u], [ca.jacobian(steps[1], s), ca.jacobian(steps[1], u)]
+        )
         self.u_lo, self.u_hi = m.actuator_ctrlrange[0]
 
     def mj_step(self, x, u):
@@ -133,12 +167,27 @@ class Plant:
                 err = max(err, float(np.abs(x_mj - x_sym).max()))
         return err
 
-    def track(self, x0, X, U):
-        """C MuJoCo rollout of ``u = clip(U + K (x − X))``, K a time-varying LQR about (X, U)."""
+    def stops_error(self, rng) -> float:
+        """Largest |symbolic with end stops − C MuJoCo| over 10-step runs into either stop."""
+        err = 0.0
+        for _ in range(20):
+            side = rng.choice([-1.0, 1.0])
+            x_mj = x_sym = np.array([side * rng.uniform(0.5, 0.95), *rng.normal(0, 0.1, 2),
+                                     side * rng.uniform(0, 3), 0, 0])  # fmt: skip
+            for u in side * rng.uniform(0, self.u_hi, 10):
+                x_mj = self.mj_step(x_mj, u)
+                x_sym = np.asarray(self.step_stops(x_sym, u)).ravel()
+                err = max(err, float(np.abs(x_mj - x_sym).max()))
+        return err
+
+    def track(self, x0, X, U, stops=False):
+        """C MuJoCo rollout of ``u = clip(U + K (x − X))``, K a time-varying LQR about (X, U)
+        (linearised with the end stops where ``stops``)."""
         Q, R = np.diag([10.0, 100, 100, 1, 1, 1]), np.array([[0.01]])
         P, K = Q.copy(), np.zeros((T, 6))
+        jac = self.jac_stops if stops else self.jac
         for t in reversed(range(T)):
-            A, B = (np.asarray(a) for a in self.jac(X[t], U[t]))
+            A, B = (np.asarray(a) for a in jac(X[t], U[t]))
             K[t] = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)[0]
             P = Q + A.T @ P @ (A - B @ K[t][None])
         xs = [np.asarray(x0, float)]
@@ -160,8 +209,9 @@ def weights():
 class CatchNLP:
     """IPOPT on the success test's constraints with the task's cost; the rail bound a parameter."""
 
-    def __init__(self, plant, x0):
+    def __init__(self, plant, x0, step=None, max_iter=1000):
         ca = plant.ca
+        step = plant.step_sx if step is None else step
         w, r = weights()
         opti = self.opti = ca.Opti()
         X, U = self.X, self.U = opti.variable(6, T + 1), opti.variable(1, T)
@@ -169,7 +219,7 @@ class CatchNLP:
         opti.subject_to(X[:, 0] == x0)
         J = 0
         for t in range(T):
-            opti.subject_to(X[:, t + 1] == plant.step_sx(X[:, t], U[t]))
+            opti.subject_to(X[:, t + 1] == step(X[:, t], U[t]))
             J += 0.5 * ca.sumsqr(np.sqrt(w) * X[:, t]) + 0.5 * r * U[t] ** 2
         J += 0.5 * ca.sumsqr(np.sqrt(w) * X[:, T])
         self.J = J
@@ -180,7 +230,7 @@ class CatchNLP:
             opti.subject_to(opti.bounded(-bound, X[i, T - 9 :], bound))
         opti.minimize(J)
         opti.solver("ipopt", {"print_time": False},
-                    {"max_iter": 1000, "print_level": 0, "tol": 1e-7})  # fmt: skip
+                    {"max_iter": max_iter, "print_level": 0, "tol": 1e-7})  # fmt: skip
         self.guess = (np.linspace(1.0, 0.0, T + 1)[:, None] * np.asarray(x0)[None], np.zeros(T))
 
     def solve(self, rail):
@@ -199,18 +249,31 @@ class CatchNLP:
 
 
 def catch(plant, x0, rail):
-    """(solved at ``rail``, the smallest rail bound met on the path, cost, X, U)."""
+    """(solved at ``rail``, the smallest rail bound met on the path, its cost, X, U)."""
     nlp = CatchNLP(plant, x0)
     if nlp.solve(rail):
         return True, rail, nlp.cost, *nlp.guess
-    met = None
+    met, cost = None, None
     for bound in (b for b in RAIL_PATH if b > rail):
         if not nlp.solve(bound):
             break
-        met = bound
+        met, cost = bound, nlp.cost
     if met is not None and met == min(b for b in RAIL_PATH if b > rail) and nlp.solve(rail):
         return True, rail, nlp.cost, *nlp.guess
-    return False, met, None, None, None
+    return (False, met, cost, *nlp.guess) if met is not None else (False, None, None, None, None)
+
+
+def catch_with_stops(plant, x0, X, U, bound=1.1):
+    """IPOPT on the model with MuJoCo's end stops (the cart within ``bound``), from (X, U) ->
+    (IPOPT's status, X, U) of its last iterate."""
+    nlp = CatchNLP(plant, x0, step=plant.step_stops)
+    nlp.guess = (X, U)
+    solved = nlp.solve(bound)
+    o = nlp.opti
+    if solved:
+        return "solved", *nlp.guess
+    X, U = np.asarray(o.debug.value(nlp.X)).T, np.asarray(o.debug.value(nlp.U)).ravel()
+    return o.stats()["return_status"], X, U
 
 
 def sqp(plant, x0, rail, penalty, on="mujoco", terminal=1.0, iterations=200):
@@ -301,6 +364,9 @@ def main(argv=None) -> int:
     parser.add_argument("--starts", type=int, default=8)
     parser.add_argument("--keys", default=None, help="SEED:START,... instead of every start")
     parser.add_argument("--rail", type=float, default=0.98)
+    parser.add_argument("--stops", action="store_true",
+                        help="for a start not caught within --rail: IPOPT on the model with the "
+                             "end stops from the loosest solution met")  # fmt: skip
     parser.add_argument("--sqp", action="store_true")
     parser.add_argument("--sqp-on", choices=("mujoco", "symbolic"), default="mujoco")
     parser.add_argument("--rail-penalty", type=float, default=0.0)
@@ -321,7 +387,9 @@ def main(argv=None) -> int:
               for s in {k[0] for k in keys}}  # fmt: skip
     err = plant.model_error([starts[s][i] for s, i in keys[:20]], np.random.default_rng(0))
     print(f"symbolic model vs C MuJoCo, largest state difference over 10 steps: {err:.1e}")
-    if err > 1e-6:
+    stops_err = plant.stops_error(np.random.default_rng(1))
+    print(f"with the end stops, over 10 steps run into them: {stops_err:.1e}")
+    if max(err, stops_err) > 1e-6:
         raise SystemExit("the symbolic model does not match the MJCF")
     rows = []
     for s, i in keys:
@@ -336,6 +404,13 @@ def main(argv=None) -> int:
                        min_tip=round(float(tip(Xm).min()), 4),
                        max_cart=round(float(np.abs(Xm[:, 0]).max()), 4))  # fmt: skip
         row["ipopt_s"] = round(time.perf_counter() - t0, 1)
+        if args.stops and not solved and X is not None:
+            t0 = time.perf_counter()
+            status, Xs, Us = catch_with_stops(plant, x0, X, U)
+            Xm = plant.track(x0, Xs, Us, stops=True)
+            row.update(stops_status=status, stops_max_cart=round(float(np.abs(Xs[:, 0]).max()), 4),
+                       stops_caught_in_mujoco=bool(double_success(Xm)),
+                       stops_s=round(time.perf_counter() - t0, 1))  # fmt: skip
         if args.sqp:
             t0 = time.perf_counter()
             Xs, Us, n, gap = sqp(
