@@ -11,8 +11,9 @@ states from the start to upright. The cart is kept within ``--rail`` (0.98 m: in
 slider's limit, 1 m less its 0.01 m margin, so MuJoCo's end stop never acts). A start IPOPT
 cannot solve there is solved again with the rail bound loosened and then tightened step by step
 (2 m down to ``--rail``, each warm-started from the last), and the smallest bound met is
-reported. IPOPT is a local method: a start it does not solve may still be catchable, and the end
-stop (which this model leaves out) pushes harder than the motor.
+reported with its cost. IPOPT is a local method: a start it does not solve may still be
+catchable, and the end stop (which the model leaves out unless ``--stops``) pushes harder than
+the motor.
 
 Every solution is replayed in C MuJoCo (``mujoco.MjModel`` of the same file) with a
 time-varying LQR that tracks it (an unstable system's open-loop actions diverge from any
@@ -35,9 +36,9 @@ either way.
 subproblem with the shooting gaps solved by a Riccati sweep, actions clamped to the box, an ℓ1
 merit on the gaps) from the same straight line, on C MuJoCo's own step (central finite
 differences, end stops included; ``--sqp-on symbolic``: the symbolic model, no rail), with a
-penalty ``--rail-penalty·max(0, |x| − --rail)²`` on
-the cart's position (0: none): the prototype of a solver that could replace iLQR's single
-shooting where iLQR falls into local optima.
+penalty ``--rail-penalty·max(0, |x| − --rail)²`` on the cart's position (0: none) and the last
+state's cost weights times ``--terminal-weight``: the prototype of a solver that could replace
+iLQR's single shooting where iLQR falls into local optima.
 
 Needs CasADi, which is not a dependency of the project (``pip install casadi``); without it the
 script says so and stops.
