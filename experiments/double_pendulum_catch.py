@@ -381,7 +381,14 @@ def main(argv=None) -> int:
         return 1
     plant = Plant(casadi)
     if args.keys:
-        keys = [tuple(map(int, k.split(":"))) for k in args.keys.split(",")]
+        try:
+            keys = [(int(a), int(b)) for a, b in (k.split(":") for k in args.keys.split(","))]
+        except ValueError:
+            raise SystemExit(
+                f"--keys: expected SEED:START,... (e.g. 4:4,5:2), got {args.keys!r}"
+            ) from None
+        if any(not 0 <= i < args.starts for _, i in keys):
+            raise SystemExit(f"--keys: each START must lie in 0..{args.starts - 1}")
     else:
         keys = [(s, i) for s in map(int, args.seeds.split(",")) for i in range(args.starts)]
     starts = {s: TASKS["double_pendulum"].starts(np.random.default_rng(s), args.starts)
