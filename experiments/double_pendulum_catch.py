@@ -27,10 +27,11 @@ over random 10-step rollouts is printed; the script stops above 10⁻⁶).
 ``--stops``: for a start not solved within ``--rail``, IPOPT again on the model with MuJoCo's
 end stops written in (its soft limit constraint: reference acceleration, impedance, regulariser
 from the joint's solref, solimp and margin; checked against C MuJoCo on runs into the stops),
-warm-started from the solution at the smallest bound met, the cart within 1.1 m. The stop's
-force is not smooth (it switches on within the margin and is clipped at zero), which IPOPT's
-Newton steps do not handle well: a status other than ``Solve_Succeeded`` there is no evidence
-either way.
+the cart within 1.1 m, warm-started from the solution at the smallest bound met. The stop's
+force switches on within the margin and is clipped at zero, which IPOPT's Newton steps do not
+converge on, so IPOPT solves a smoothed stop (a tanh switch, a softplus clip: ``SMOOTHING``,
+tightened in five steps); each solution is replayed in C MuJoCo, whose stops are exact, and
+judged by the success test.
 
 ``--sqp`` also runs a multiple-shooting SQP written here in NumPy (Gauss-Newton, the LQ
 subproblem with the shooting gaps solved by a Riccati sweep, actions clamped to the box, an ℓ1
@@ -101,44 +102,60 @@ class Plant:
                 + ca.gradient(potential, q))  # fmt: skip
         force = ca.vertcat(m.actuator_gear[0, 0] * u, 0, 0) - m.dof_damping * qd
         qdd = mass_inv @ (force - bias)
-        # The slider's end stops: MuJoCo's soft limit constraint, one per end, active within the
-        # joint's margin of its range: aref = −b·Jv − k·d(r)·r, r = distance − margin, d the
-        # solimp impedance, R = (1 − d)/d · dof_invweight0, force max(0, (aref − J·a₀)/(A + R)).
+        self._sym = (ca.vertcat(q, qd), u, qd, qdd, mass_inv)
+        self.step_sx, self.jac = self._rk4(qdd)
+        self.step_stops, self.jac_stops = self.with_stops()
+        self.u_lo, self.u_hi = m.actuator_ctrlrange[0]
+
+    def _rk4(self, qdd):
+        """(step, its Jacobians) of the acceleration ``qdd``: RK4 over the frame skip."""
+        ca, (state, u, qd, _, _) = self.ca, self._sym
+        f = ca.Function("f", [state, u], [ca.vertcat(qd, qdd)])
+        s = ca.SX.sym("s", 6)
+        h = self.model.opt.timestep
+        z = s
+        for _ in range(FRAME_SKIP):
+            k1 = f(z, u)
+            k2 = f(z + h / 2 * k1, u)
+            k3 = f(z + h / 2 * k2, u)
+            k4 = f(z + h * k3, u)
+            z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+        step = ca.Function("step", [s, u], [z])
+        return step, ca.Function("AB", [s, u], [ca.jacobian(z, s), ca.jacobian(z, u)])
+
+    def with_stops(self, smoothing=None):
+        """(step, Jacobians) with the slider's end stops: MuJoCo's soft limit constraint, one per
+        end, active within the joint's margin of its range: aref = −b·Jv − k·d(r)·r,
+        r = distance − margin, d the solimp impedance, R = (1 − d)/d · dof_invweight0, the push
+        max(0, (aref − J·a₀)/(A + R)). ``smoothing = (ε, σ)``: for a Newton solver, the switch
+        at r = 0 a tanh of width ε m, the max a softplus of scale σ N, d its solimp maximum."""
+        ca, m = self.ca, self.model
+        _, _, qd, qdd, mass_inv = self._sym
+        q0 = self._sym[0][0]
         (timeconst, dampratio), (dmin, dmax, width, mid, power) = m.jnt_solref[0], m.jnt_solimp[0]
         timeconst = max(timeconst, 2 * m.opt.timestep)  # MuJoCo's own floor
         b, k = 2 / (dmax * timeconst), 1 / (dmax * timeconst * dampratio) ** 2
         lo, hi = m.jnt_range[0]
-        qdd_stops = qdd
-        for J, distance in ((-1.0, hi - q[0]), (1.0, q[0] - lo)):
+        acc = qdd
+        for J, distance in ((-1.0, hi - q0), (1.0, q0 - lo)):
             r = distance - m.jnt_margin[0]
-            x = ca.fmin(ca.fabs(r) / width, 1)
-            y = ca.if_else(x <= mid, x**power / mid ** (power - 1),
-                           1 - (1 - x) ** power / (1 - mid) ** (power - 1))  # fmt: skip
-            d = dmin + y * (dmax - dmin)
+            if smoothing is None:
+                x = ca.fmin(ca.fabs(r) / width, 1)
+                y = ca.if_else(x <= mid, x**power / mid ** (power - 1),
+                               1 - (1 - x) ** power / (1 - mid) ** (power - 1))  # fmt: skip
+                d = dmin + y * (dmax - dmin)
+            else:
+                d = dmax
             aref = -b * J * qd[0] - k * d * r
-            stiffness = mass_inv[0, 0] + (1 - d) / d * m.dof_invweight0[0]
-            push = ca.fmax(0, (aref - J * qdd[0]) / stiffness)
-            qdd_stops = qdd_stops + ca.if_else(r < 0, 1, 0) * mass_inv[:, 0] * J * push
-        s = ca.SX.sym("s", 6)
-        h = m.opt.timestep
-        steps = []
-        for acc in (qdd, qdd_stops):
-            f = ca.Function("f", [ca.vertcat(q, qd), u], [ca.vertcat(qd, acc)])
-            z = s
-            for _ in range(FRAME_SKIP):
-                k1 = f(z, u)
-                k2 = f(z + h / 2 * k1, u)
-                k3 = f(z + h / 2 * k2, u)
-                k4 = f(z + h * k3, u)
-                z = z + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-            steps.append(z)
-        self.step_sx = ca.Function("step", [s, u], [steps[0]])
-        self.step_stops = ca.Function("step_stops", [s, u], [steps[1]])
-        self.jac = ca.Function("AB", [s, u], [ca.jacobian(steps[0], s), ca.jacobian(steps[0], u)])
-        self.jac_stops = ca.Function(
-            "AB_stops", [s, u], [ca.jacobian(steps[1], s), ca.jacobian(steps[1], u)]
-        )
-        self.u_lo, self.u_hi = m.actuator_ctrlrange[0]
+            z = (aref - J * qdd[0]) / (mass_inv[0, 0] + (1 - d) / d * m.dof_invweight0[0])
+            if smoothing is None:
+                push = ca.if_else(r < 0, 1, 0) * ca.fmax(0, z)
+            else:
+                eps, sigma = smoothing
+                softplus = ca.fmax(z, 0) + sigma * ca.log1p(ca.exp(-ca.fabs(z) / sigma))
+                push = 0.5 * (1 + ca.tanh(-r / eps)) * softplus
+            acc = acc + mass_inv[:, 0] * J * push
+        return self._rk4(acc)
 
     def mj_step(self, x, u):
         m, d = self.model, self.data
@@ -181,12 +198,12 @@ class Plant:
                 err = max(err, float(np.abs(x_mj - x_sym).max()))
         return err
 
-    def track(self, x0, X, U, stops=False):
+    def track(self, x0, X, U, jac=None):
         """C MuJoCo rollout of ``u = clip(U + K (x − X))``, K a time-varying LQR about (X, U)
-        (linearised with the end stops where ``stops``)."""
+        on the Jacobians ``jac`` (default: the model without stops)."""
         Q, R = np.diag([10.0, 100, 100, 1, 1, 1]), np.array([[0.01]])
         P, K = Q.copy(), np.zeros((T, 6))
-        jac = self.jac_stops if stops else self.jac
+        jac = self.jac if jac is None else jac
         for t in reversed(range(T)):
             A, B = (np.asarray(a) for a in jac(X[t], U[t]))
             K[t] = np.linalg.solve(R + B.T @ P @ B, B.T @ P @ A)[0]
@@ -264,17 +281,30 @@ def catch(plant, x0, rail):
     return (False, met, cost, *nlp.guess) if met is not None else (False, None, None, None, None)
 
 
+SMOOTHING = ((5e-3, 100.0), (2e-3, 30.0), (1e-3, 10.0), (5e-4, 3.0), (2e-4, 1.0))
+
+
 def catch_with_stops(plant, x0, X, U, bound=1.1):
-    """IPOPT on the model with MuJoCo's end stops (the cart within ``bound``), from (X, U) ->
-    (IPOPT's status, X, U) of its last iterate."""
-    nlp = CatchNLP(plant, x0, step=plant.step_stops)
-    nlp.guess = (X, U)
-    solved = nlp.solve(bound)
-    o = nlp.opti
-    if solved:
-        return "solved", *nlp.guess
-    X, U = np.asarray(o.debug.value(nlp.X)).T, np.asarray(o.debug.value(nlp.U)).ravel()
-    return o.stats()["return_status"], X, U
+    """IPOPT on the model with the end stops smoothed (``SMOOTHING``, each level warm-started
+    from the last, the first from (X, U); the cart within ``bound``) -> rows per level, and the
+    last solution replayed in C MuJoCo (exact stops) with a tracking LQR."""
+    rows, guess, replay = [], (X, U), None
+    for smoothing in SMOOTHING:
+        step, jac = plant.with_stops(smoothing)
+        nlp = CatchNLP(plant, x0, step=step, max_iter=1500)
+        nlp.guess = guess
+        if not nlp.solve(bound):
+            rows.append({"smoothing": smoothing, "status": nlp.opti.stats()["return_status"]})
+            break
+        guess = nlp.guess
+        Xm = plant.track(x0, *guess, jac=jac)
+        replay = {"caught_in_mujoco": bool(double_success(Xm)),
+                  "min_tip": round(float(tip(Xm).min()), 4),
+                  "max_cart": round(float(np.abs(Xm[:, 0]).max()), 4)}  # fmt: skip
+        cart = round(float(np.abs(guess[0][:, 0]).max()), 4)
+        rows.append({"smoothing": smoothing, "status": "solved", "cost": round(nlp.cost, 3),
+                     "max_cart": cart, **replay})  # fmt: skip
+    return rows, replay
 
 
 def sqp(plant, x0, rail, penalty, on="mujoco", terminal=1.0, iterations=200):
@@ -414,10 +444,9 @@ def main(argv=None) -> int:
         row["ipopt_s"] = round(time.perf_counter() - t0, 1)
         if args.stops and not solved and X is not None:
             t0 = time.perf_counter()
-            status, Xs, Us = catch_with_stops(plant, x0, X, U)
-            Xm = plant.track(x0, Xs, Us, stops=True)
-            row.update(stops_status=status, stops_max_cart=round(float(np.abs(Xs[:, 0]).max()), 4),
-                       stops_caught_in_mujoco=bool(double_success(Xm)),
+            levels, replay = catch_with_stops(plant, x0, X, U)
+            caught = bool(replay and replay["caught_in_mujoco"])
+            row.update(stops=levels, stops_caught_in_mujoco=caught,
                        stops_s=round(time.perf_counter() - t0, 1))  # fmt: skip
         if args.sqp:
             t0 = time.perf_counter()
@@ -433,6 +462,9 @@ def main(argv=None) -> int:
         print(json.dumps(row), flush=True)
     caught = sum(r.get("caught_in_mujoco", False) for r in rows)
     print(f"caught (IPOPT within ±{args.rail} m, replayed in C MuJoCo): {caught}/{len(rows)}")
+    if args.stops:
+        more = sum(r.get("stops_caught_in_mujoco", False) for r in rows)
+        print(f"caught by running into the end stops as well: {more} more")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({"rail": args.rail, "rows": rows}, indent=1))
