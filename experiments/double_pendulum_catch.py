@@ -286,9 +286,10 @@ SMOOTHING = ((5e-3, 100.0), (2e-3, 30.0), (1e-3, 10.0), (5e-4, 3.0), (2e-4, 1.0)
 
 def catch_with_stops(plant, x0, X, U, bound=1.1):
     """IPOPT on the model with the end stops smoothed (``SMOOTHING``, each level warm-started
-    from the last, the first from (X, U); the cart within ``bound``) -> rows per level, and the
-    last solution replayed in C MuJoCo (exact stops) with a tracking LQR."""
-    rows, guess, replay = [], (X, U), None
+    from the last, the first from (X, U); the cart within ``bound``) -> a row per level, each
+    solution replayed in C MuJoCo (exact stops) with a tracking LQR: any row caught is a
+    controller that catches the start."""
+    rows, guess = [], (X, U)
     for smoothing in SMOOTHING:
         step, jac = plant.with_stops(smoothing)
         nlp = CatchNLP(plant, x0, step=step, max_iter=1500)
@@ -304,7 +305,7 @@ def catch_with_stops(plant, x0, X, U, bound=1.1):
         cart = round(float(np.abs(guess[0][:, 0]).max()), 4)
         rows.append({"smoothing": smoothing, "status": "solved", "cost": round(nlp.cost, 3),
                      "max_cart": cart, **replay})  # fmt: skip
-    return rows, replay
+    return rows
 
 
 def sqp(plant, x0, rail, penalty, on="mujoco", terminal=1.0, iterations=200):
@@ -444,8 +445,8 @@ def main(argv=None) -> int:
         row["ipopt_s"] = round(time.perf_counter() - t0, 1)
         if args.stops and not solved and X is not None:
             t0 = time.perf_counter()
-            levels, replay = catch_with_stops(plant, x0, X, U)
-            caught = bool(replay and replay["caught_in_mujoco"])
+            levels = catch_with_stops(plant, x0, X, U)
+            caught = any(level.get("caught_in_mujoco", False) for level in levels)
             row.update(stops=levels, stops_caught_in_mujoco=caught,
                        stops_s=round(time.perf_counter() - t0, 1))  # fmt: skip
         if args.sqp:
