@@ -59,7 +59,7 @@ from pathlib import Path
 
 import mujoco
 import numpy as np
-from trajopt_gym import DOUBLE_WEIGHTS, TASKS, double_success, gym_asset
+from trajopt_gym import DOUBLE_WEIGHTS, TASKS, double_success, double_tip_height, gym_asset
 
 FRAME_SKIP = 5
 T = 100
@@ -216,7 +216,8 @@ class Plant:
 
 
 def tip(X):
-    return 0.6 * np.cos(X[..., 1]) + 0.6 * np.cos(X[..., 1] + X[..., 2])
+    """The tip's height of each state in ``X: [..., 6]`` (the experiment's own formula)."""
+    return np.asarray(double_tip_height(np.moveaxis(np.asarray(X), -1, 0)))
 
 
 def weights():
