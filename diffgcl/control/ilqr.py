@@ -169,6 +169,7 @@ def backward_pass(
     lower: Array | None = None,
     upper: Array | None = None,
     k_init: Array | None = None,
+    gaps: Array | None = None,
 ) -> _Backward:
     """The iLQR backward pass (module docstring, step 2) on deviations from the trajectory.
 
@@ -181,6 +182,11 @@ def backward_pass(
     Q_uᵀk`` on them (:func:`~diffgcl.control.box_qp.box_qp`, warm-started from ``k_init``) and
     ``K_t`` is solved on the free actions only, zero rows on the clamped ones (Tassa et al.
     2014). None: unconstrained.
+
+    gaps: [T, dX] the defects ``f(X_t, U_t) − X_{t+1}`` of a trajectory that is not a rollout
+    (multiple shooting, :mod:`diffgcl.control.shooting`): the linear model is then ``δx' = A δx
+    + B δu + gap``, so the value's gradient seen from step t is ``V_x' + V_xx'·gap_t``. None: a
+    rollout (no gaps).
     """
     dU = B.shape[-1]
     eye_u = jnp.eye(dU, dtype=B.dtype)
@@ -206,7 +212,9 @@ def backward_pass(
 
     def step(carry, inputs):
         V_x, V_xx, dV1, dV2, ok = carry
-        A_t, B_t, l_x, l_u, l_xx, l_uu, l_ux, box = inputs
+        A_t, B_t, l_x, l_u, l_xx, l_uu, l_ux, box, gap = inputs
+        if gap is not None:
+            V_x = V_x + V_xx @ gap
         Q_x = l_x + A_t.T @ V_x
         Q_u = l_u + B_t.T @ V_x
         Q_xx = l_xx + A_t.T @ V_xx @ A_t
@@ -234,7 +242,8 @@ def backward_pass(
     zero = jnp.zeros((), B.dtype)
     init = (V_x, V_xx, zero, zero, jnp.all(jnp.isfinite(V_x)) & jnp.all(jnp.isfinite(V_xx)))
     box = (lower, upper, k_init) if boxed else None
-    xs = (A, B, quad.l_x[:-1], quad.l_u[:-1], quad.l_xx[:-1], quad.l_uu[:-1], quad.l_ux[:-1], box)
+    xs = (A, B, quad.l_x[:-1], quad.l_u[:-1], quad.l_xx[:-1], quad.l_uu[:-1], quad.l_ux[:-1], box,
+          gaps)  # fmt: skip
     (_, _, dV1, dV2, ok), (K, k, Q_reg) = lax.scan(step, init, xs, reverse=True)
     return _Backward(K=K, k=k, Q_uu=Q_reg, dV1=dV1, dV2=dV2, ok=ok)
 

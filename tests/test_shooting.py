@@ -1,0 +1,153 @@
+"""Multiple shooting (diffgcl.control.shooting) against independent references, float64."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from test_ilqr import _lq_problem, _numpy_cost_and_gradient, _pendulum, _riccati_rollout
+
+from diffgcl.control.ilqr import CONVERGED, backward_pass, ilqr
+from diffgcl.control.shooting import (
+    ShootingConfig,
+    multiple_shooting,
+    relaxed_log_barrier,
+    state_barrier,
+    straight_line,
+)
+from diffgcl.costs.expansion import expand_cost
+
+
+def test_relaxed_barrier_is_log_inside_and_c2_at_the_switch():
+    d = 1e-2
+    s = jnp.array([0.5, 2.0, 1e-1])
+    np.testing.assert_allclose(relaxed_log_barrier(s, d), -np.log(np.asarray(s)), rtol=1e-14)
+    f = lambda s: relaxed_log_barrier(s, d)
+    for g in (f, jax.grad(f), jax.grad(jax.grad(f))):  # value, slope, curvature meet at δ
+        assert float(g(d * (1 - 1e-9))) == pytest.approx(float(g(d * (1 + 1e-9))), rel=1e-6)
+    assert np.isfinite(float(f(-3.0))) and float(jax.grad(f)(-3.0)) < 0
+    # Only the finite sides count.
+    x = jnp.array([0.2, 5.0])
+    lo, hi = jnp.array([-1.0, -jnp.inf]), jnp.array([1.0, jnp.inf])
+    want = -np.log(1.2) - np.log(0.8)
+    assert float(state_barrier(x, lo, hi, d)) == pytest.approx(want, rel=1e-14)
+    assert np.all(np.isfinite(jax.grad(state_barrier)(x, lo, hi, d)))
+
+
+def test_backward_pass_with_gaps_solves_the_lq_problem_with_defects():
+    """The gains of the backward pass with gaps, applied to the linear model with those gaps,
+    give the minimiser of the quadratic cost subject to ``x' = A x + B u + c`` from a state guess
+    that is not a rollout: the Riccati solution."""
+    T = 6
+    A, B, c, quad, x0, step, cost = _lq_problem(T=T)
+    U_ref, _ = _riccati_rollout(A, B, c, quad, x0)
+    rng = np.random.default_rng(0)
+    X = jnp.asarray(rng.normal(size=(T + 1, A.shape[0]))).at[0].set(x0)
+    U = jnp.asarray(rng.normal(size=(T, B.shape[1])))
+    gaps = jax.vmap(step)(X[:-1], U) - X[1:]
+    As, Bs = jnp.broadcast_to(A, (T, *A.shape)), jnp.broadcast_to(B, (T, *B.shape))
+    back = backward_pass(As, Bs, expand_cost(cost, X, U), jnp.zeros(()), gaps=gaps)
+    dx, U_new = jnp.zeros(A.shape[0]), []
+    for t in range(T):
+        du = back.k[t] + back.K[t] @ dx
+        U_new.append(U[t] + du)
+        dx = A @ dx + B @ du + gaps[t]
+    np.testing.assert_allclose(np.stack(U_new), U_ref, rtol=0, atol=1e-9)
+
+
+def test_lq_problem_from_a_random_state_guess_equals_riccati():
+    """Linear dynamics: the first full step closes every gap and lands on the optimum; the
+    result is the closed-loop rollout, equal to the Riccati controller's."""
+    T = 8
+    A, B, c, quad, x0, step, cost = _lq_problem(T=T)
+    U_ref, _ = _riccati_rollout(A, B, c, quad, x0)
+    X_init = jnp.asarray(np.random.default_rng(1).normal(size=(T + 1, A.shape[0])))
+    solve = jax.jit(lambda x0, X: multiple_shooting(step, cost, x0, X, jnp.zeros((T, 2))))
+    result = solve(jnp.asarray(x0), X_init)
+    assert int(result.status) == CONVERGED
+    np.testing.assert_allclose(result.U, U_ref, rtol=0, atol=1e-9)
+    x = x0.copy()
+    for t in range(T):
+        x = A @ x + B @ U_ref[t] + c
+    np.testing.assert_allclose(result.X[-1], x, atol=1e-9)
+    # One Newton step; each barrier stage then finds the point stationary (no bounds here).
+    assert int(result.accepted) == 1
+
+
+def test_state_limits_meet_the_constrained_optimum():
+    """A linear-quadratic problem whose optimum breaks a bound on one state coordinate: with the
+    barrier weight driven to 10⁻⁸ the solution keeps the bound and its cost and actions approach
+    scipy's SLSQP on the condensed problem with the bound as a linear inequality."""
+    from scipy.optimize import minimize
+
+    T = 8
+    A, B, c, quad, x0, step, cost = _lq_problem(T=T)
+    free = ilqr(step, cost, jnp.asarray(x0), jnp.zeros((T, 2)))
+    i = 0
+    bound = 0.5 * float(jnp.abs(free.X[1:, i]).max())  # the optimum breaks it
+    x_min = jnp.full(A.shape[0], -jnp.inf).at[i].set(-bound)
+    x_max = jnp.full(A.shape[0], jnp.inf).at[i].set(bound)
+    config = ShootingConfig(barrier_weights=(1.0, 1e-2, 1e-4, 1e-6, 1e-8), barrier_delta=1e-6)
+    result = multiple_shooting(step, cost, jnp.asarray(x0), straight_line(jnp.asarray(x0),
+                               jnp.zeros_like(jnp.asarray(x0)), T), jnp.zeros((T, 2)), config,
+                               x_min=x_min, x_max=x_max)  # fmt: skip
+    assert int(result.status) == CONVERGED
+    # The relaxed barrier's quadratic side (curvature w/δ² = 10⁴ at the end) lets the state
+    # press about 10⁻⁴ past the bound.
+    assert float(jnp.abs(result.X[1:, i]).max()) <= bound + 1e-3
+
+    def states(U):
+        x, out = x0.copy(), []
+        for t in range(T):
+            x = A @ x + B @ U[2 * t : 2 * t + 2] + c
+            out.append(x[i])
+        return np.array(out)
+
+    J_and_grad = _numpy_cost_and_gradient(A, B, c, quad, x0)
+    ref = minimize(J_and_grad, np.zeros(2 * T), jac=True, method="SLSQP",
+                   constraints=[{"type": "ineq", "fun": lambda U: bound - states(U)},
+                                {"type": "ineq", "fun": lambda U: bound + states(U)}],
+                   options={"ftol": 1e-14, "maxiter": 1000})  # fmt: skip
+    assert ref.success
+    assert float(result.cost) == pytest.approx(ref.fun, rel=1e-4)
+    np.testing.assert_allclose(np.asarray(result.U).ravel(), ref.x, atol=1e-2)
+    assert float(result.cost) > float(free.cost)
+
+
+def test_pendulum_swing_up_closes_the_gaps_and_respects_the_box():
+    """Swinging the pendulum up from the straight line of states (not a rollout): the result is
+    a rollout of its actions that reaches the top, the actions within the torque box; from rest
+    it converges to iLQR's optimum; vmapped equals unbatched."""
+    T = 40
+    step, cost = _pendulum(T=T)
+    goal = jnp.array([jnp.pi, 0.0])
+    config = ShootingConfig(barrier_weights=(0.0,), stage_iterations=200)
+
+    def solve(x0):
+        X = straight_line(x0, goal, T)
+        return multiple_shooting(step, cost, x0, X, jnp.zeros((T, 1)), config, u_min=-4.0,
+                                 u_max=4.0)  # fmt: skip
+
+    X0 = jnp.array([[0.0, 0.0], [0.3, -0.5]])
+    batched = jax.jit(jax.vmap(solve))(X0)
+    for j in range(2):
+        one = jax.jit(solve)(X0[j])
+        np.testing.assert_allclose(batched.U[j], one.U, rtol=0, atol=1e-10)
+        assert float(jnp.abs(batched.U[j]).max()) <= 4.0
+        x = X0[j]
+        for t in range(T):  # an independent rollout of the returned actions
+            x = step(x, batched.U[j, t])
+        np.testing.assert_allclose(batched.X[j, -1], x, atol=1e-9)
+        assert abs(float(x[0]) - np.pi) < 0.1
+    assert int(batched.status[0]) == CONVERGED
+    ref = ilqr(step, cost, X0[0], jnp.zeros((T, 1)), u_min=-4.0, u_max=4.0)
+    assert float(batched.cost[0]) == pytest.approx(float(ref.cost), rel=1e-5)
+
+
+def test_config_rejects_bad_settings_and_shapes():
+    with pytest.raises(ValueError, match="barrier_weights"):
+        ShootingConfig(barrier_weights=())
+    with pytest.raises(ValueError, match="backtrack"):
+        ShootingConfig(backtrack=1.5)
+    step, cost = _pendulum(T=4)
+    with pytest.raises(ValueError, match="X_init must be"):
+        multiple_shooting(step, cost, jnp.zeros(2), jnp.zeros((4, 2)), jnp.zeros((4, 1)))
