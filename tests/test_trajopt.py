@@ -183,3 +183,57 @@ def test_expert_demos_api_and_cli(env, tmp_path, capsys):
         main(["demos", str(out), "--mjcf", str(xml), "--cost", "quadratic:1", "--x0", "1,2,3"])
     with pytest.raises(SystemExit, match="must be an .npz file"):
         main(["demos", str(tmp_path / "d"), "--mjcf", str(xml), "--cost", "quadratic:1"])
+
+
+RAIL = """<mujoco model="rail">
+  <option timestep="0.05" integrator="Euler"/>
+  <worldbody>
+    <body name="cart">
+      <joint name="x" type="slide" axis="1 0 0" damping="0.5" limited="true" range="-0.5 0.5"
+             margin="0.02"/>
+      <geom type="sphere" size="0.1" mass="1"/>
+    </body>
+    <body name="wheel" pos="0 1 0">
+      <joint name="free_spin" type="hinge" axis="0 0 1"/>
+      <geom type="sphere" size="0.1" mass="1"/>
+    </body>
+  </worldbody>
+  <actuator>
+    <motor joint="x" gear="2" ctrlrange="-5 5" ctrllimited="true"/>
+    <motor joint="free_spin" gear="1" ctrlrange="-1 1" ctrllimited="true"/>
+  </actuator>
+</mujoco>
+"""
+
+
+def test_state_limits_from_joint_ranges_keep_a_plan_off_the_stop(tmp_path):
+    """A cart whose cost pulls it past its rail's end: the env's state bounds are the limited
+    joint's range less its margin and 0.5 % of the range (the unlimited hinge and the velocities
+    free); multiple shooting keeps the plan inside them, and its result is the env's own rollout
+    of its actions."""
+    path = tmp_path / "rail.xml"
+    path.write_text(RAIL)
+    target = 0.8
+
+    def pull(x, u, t):
+        return 0.5 * ((x[0] - target) ** 2 + 0.1 * x[2] ** 2) + 0.5 * 0.01 * u @ u
+
+    env = api.load_model(path, x0=np.array([[0.0, 0.0, 0.0, 0.0], [0.2, 0.0, 0.0, 0.5]]),
+                         horizon=T)  # fmt: skip
+    lo, hi = env.state_bounds()
+    np.testing.assert_allclose(hi, [0.5 - 0.02 - 0.005, np.inf, np.inf, np.inf])
+    np.testing.assert_allclose(lo, -hi)
+    result = jax.jit(lambda x: trajopt.solve_shooting(env, pull, x))(env.initial_states())
+    X = np.asarray(result.X)
+    assert np.all(X[:, :, 0] <= hi[0] + 1e-3)
+    assert np.all(X[:, -1, 0] > hi[0] - 0.05)  # it does go to the limit
+    for c in range(2):
+        x = env.initial_states()[c]
+        for t in range(T):
+            x = env.step(x, result.U[c, t])
+        np.testing.assert_allclose(X[c, -1], x, atol=1e-9)
+    # Without the limits the same solver drives the cart into the end stop.
+    free = jax.jit(lambda x: trajopt.solve_shooting(env, pull, x, limits=False))(
+        env.initial_states()
+    )
+    assert float(jnp.max(free.X[:, :, 0])) > hi[0] + 0.01

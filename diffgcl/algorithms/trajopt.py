@@ -40,6 +40,7 @@ from diffgcl.control.ilqr import (
     ilqr_controller,
     squared_residual,
 )
+from diffgcl.control.shooting import ShootingConfig, multiple_shooting, straight_line
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey
 
 
@@ -54,6 +55,64 @@ def action_bounds(env: Env) -> tuple[np.ndarray, np.ndarray] | None:
     if not (np.isfinite(lo).any() or np.isfinite(hi).any()):
         return None
     return lo, hi
+
+
+def state_bounds(env: Env) -> tuple[np.ndarray, np.ndarray] | None:
+    """The env's state limits ``(x_min, x_max)`` where it has a finite one (an env with a
+    ``state_bounds()`` method, such as :class:`~diffgcl.envs.mjcf_env.MJCFEnv` from its limited
+    joints' ranges); None: unlimited."""
+    method = getattr(env, "state_bounds", None)
+    if method is None:
+        return None
+    lo, hi = method()
+    if not (np.isfinite(lo).any() or np.isfinite(hi).any()):
+        return None
+    return lo, hi
+
+
+def solve_shooting(
+    env: Env,
+    cost: CostFn,
+    x0: Array,
+    config: ShootingConfig | None = None,
+    *,
+    limits: bool = True,
+    goal: Array | None = None,
+    U_init: Array | None = None,
+) -> ILQRResult:
+    """Multiple shooting (:func:`~diffgcl.control.shooting.multiple_shooting`) on
+    ``env.step`` with ``cost`` from each start state ``x0: [C, dX]``, from the straight line of
+    states to ``goal`` ([dX] or [C, dX]; default where the terminal cost is lowest,
+    :func:`~diffgcl.control.ilqr.cost_minimiser` from each start) and ``U_init`` ([T, dU] or
+    [C, T, dU], default zeros). limits: the env's :func:`action_bounds` and :func:`state_bounds`
+    (its joints' ranges, kept by the barrier); False: none. ``cost`` is a cost, not a residual.
+    Returns an ILQRResult with leading axis C (pure; jit it)."""
+    x0 = jnp.atleast_2d(x0)
+    T, dU = env.horizon, env.dU
+    C = x0.shape[0]
+    if x0.shape[-1] != env.dX:
+        raise ValueError(f"trajopt.solve_shooting: x0 must be [C, {env.dX}], got "
+                         f"{tuple(x0.shape)}")  # fmt: skip
+    config = ShootingConfig() if config is None else config
+    box = action_bounds(env) if limits else None
+    u_min, u_max = (None, None) if box is None else box
+    sbox = state_bounds(env) if limits else None
+    x_min, x_max = (None, None) if sbox is None else sbox
+    if goal is None:
+        goals = jax.vmap(lambda x: cost_minimiser(cost, x, dU, T))(x0)
+    else:
+        goals = jnp.broadcast_to(jnp.asarray(goal, x0.dtype), x0.shape)
+    U = jnp.zeros((T, dU), x0.dtype) if U_init is None else jnp.asarray(U_init, x0.dtype)
+    if U.shape[-2:] != (T, dU):
+        raise ValueError(f"trajopt.solve_shooting: U_init must be [T={T}, {dU}] or [C, T, {dU}], "
+                         f"got {tuple(U.shape)}")  # fmt: skip
+    U = jnp.broadcast_to(U, (C, T, dU))
+
+    def one(x, g, u):
+        return multiple_shooting(env.step, cost, x, straight_line(x, g, T), u, config, u_min=u_min,
+                                 u_max=u_max, x_min=x_min, x_max=x_max)  # fmt: skip
+
+    return jax.vmap(one)(x0, goals, U)
 
 
 INITIAL_ACTIONS = ("zeros", "goal_lqr", "best")

@@ -70,6 +70,7 @@ class MJCFEnv:
     x0: Array  # [C, dX]
     ctrl_scale: np.ndarray | None  # [nu]; None: the action is ctrl
     ctrl_range: np.ndarray  # [nu, 2]; ±inf where the actuator is not ctrl-limited
+    joint_range: np.ndarray  # [dX, 2]; the limited hinge and slide joints' ranges (state_bounds)
     actuator_names: tuple[str, ...]
     mjcf_path: str
     dt: float
@@ -120,6 +121,15 @@ class MJCFEnv:
         nothing more: what control-limited trajectory optimisation needs to know."""
         lo, hi = (self.action_from_ctrl(self.ctrl_range[:, i]) for i in (0, 1))
         return np.asarray(lo, float), np.asarray(hi, float)
+
+    def state_bounds(self) -> tuple[np.ndarray, np.ndarray]:
+        """``(x_min, x_max)``: [dX] each, where the limited hinge and slide joints' positions may
+        go without their end stop acting: the joint's ``range`` less its limit ``margin`` (where
+        MuJoCo's limit constraint switches on) and a further 0.5 % of the range, ±inf for every
+        other coordinate. What trajectory optimisation with state limits keeps a plan inside
+        (:func:`diffgcl.control.shooting.multiple_shooting`): a stop's force is stiff and
+        switches on abruptly, which a linearisation cannot follow."""
+        return self.joint_range[:, 0].copy(), self.joint_range[:, 1].copy()
 
     def _data(self, x: Array, ctrl: Array) -> mjx.Data:
         qpos, qvel, act = self.mujoco_from_state(x)
@@ -293,6 +303,21 @@ def _ctrl_scale(model: mujoco.MjModel, action_scale, path) -> np.ndarray | None:
     return scale
 
 
+def _joint_state_range(model: mujoco.MjModel) -> np.ndarray:
+    """[dX, 2]: :meth:`MJCFEnv.state_bounds` (a hinge or slide joint's position is the state
+    entry at its dof address; ball and free joints stay unbounded)."""
+    out = np.tile([-np.inf, np.inf], (2 * model.nv + model.na, 1))
+    scalar = (int(mujoco.mjtJoint.mjJNT_HINGE), int(mujoco.mjtJoint.mjJNT_SLIDE))
+    for j in range(model.njnt):
+        if int(model.jnt_type[j]) not in scalar or not model.jnt_limited[j]:
+            continue
+        lo, hi = (float(v) for v in model.jnt_range[j])
+        inset = float(model.jnt_margin[j]) + 0.005 * (hi - lo)
+        if hi - lo > 2 * inset:
+            out[int(model.jnt_dofadr[j])] = (lo + inset, hi - inset)
+    return out
+
+
 def _start_states(model, chart, keyframe, x0, conditions, spread, seed, path) -> np.ndarray:
     dX = 2 * model.nv + model.na
     if x0 is not None:
@@ -386,6 +411,7 @@ def make_mjcf_env(
         x0=jnp.asarray(X0, dtype),
         ctrl_scale=_ctrl_scale(model, action_scale, path),
         ctrl_range=ctrl_range,
+        joint_range=_joint_state_range(model),
         actuator_names=names,
         mjcf_path=str(path),
         dt=float(model.opt.timestep) * skip,
