@@ -14,7 +14,9 @@ hand (below), this script runs and reports per start state:
   (``best`` stops the dearer run once the other has finished cheaper after as many iterations:
   this row is that rule's reference, for time and for what it gives up); with ``--restarts`` also
   the best of iLQR from zero and from ±0.1 constant actions on each actuator
-  (:func:`diffgcl.algorithms.trajopt.solve_restarts`);
+  (:func:`diffgcl.algorithms.trajopt.solve_restarts`); with ``--shooting`` also multiple shooting
+  from the straight line of states to the goal with the joints' ranges as state limits
+  (:func:`diffgcl.algorithms.trajopt.solve_shooting`) and, per start, the cheaper of it and iLQR;
 * **GPS from iLQR**: trajectory-optimisation GPS (``GPSConfig`` of the project's reacher: 5
   samples, KL step 0.2, init_var 0.1, 20 iterations) started from the iLQR controllers;
 * **GPS from zero** (K = 0, k = 0, Σ = init_var·I; the same compiled program, another initial
@@ -254,8 +256,8 @@ def run_trajax(env, cost, X0, *, maxiter, tol, U_init=None):
 
 
 def cheaper_per_start(a: dict, b: dict) -> dict:
-    """Two trajax runs' records combined: per start the one with the lower final cost; their
-    seconds added."""
+    """Two runs' records combined: per start the one with the lower final cost (both are
+    rollouts of the simulator, so their costs compare); their seconds added."""
     pick = np.asarray(b["cost"]) < np.asarray(a["cost"])
     out = {k: np.where(pick, b[k], a[k]).tolist() for k in ("success", "cost", "iterations")}
     out["seconds"] = a["seconds"] + b["seconds"]
@@ -358,6 +360,13 @@ def run_task(name, task, args) -> dict:
     start = {"zeros": "zero actions", "goal_lqr": "the goal's LQR", "best": "the better of both"}
     label = f"iLQR from {start[args.initial]}{'' if args.limits else ', no control limits'}"
     show(label, out["ilqr"])
+    if args.shooting:  # multiple shooting from the straight line to the goal, joint limits kept
+        shoot = jax.jit(lambda x0: trajopt.solve_shooting(env, task.cost, x0, limits=args.limits))
+        result, seconds, compile_s = timed(shoot, X0)
+        out["shooting"] = record(result, seconds, compile_s)
+        show("multiple shooting from the straight line", out["shooting"])
+        out["ilqr_or_shooting"] = cheaper_per_start(out["ilqr"], out["shooting"])
+        show("per start the cheaper of iLQR and multiple shooting", out["ilqr_or_shooting"])
     if args.initial != "zeros" and args.zeros_row:  # the same solver from zero actions
         zeros, seconds, compile_s = timed(jax.jit(lambda x0: solve(x0, args.limits, "zeros")), X0)
         out["ilqr_zeros"] = record(zeros, seconds, compile_s)
@@ -498,6 +507,8 @@ def main(argv=None) -> int:
     parser.add_argument("--gps-seeds", type=int, default=1)
     parser.add_argument("--trajax", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--restarts", action="store_true", help="also iLQR's best of 1 + 2·dU")
+    parser.add_argument("--shooting", action="store_true",
+                        help="also multiple shooting (trajopt.solve_shooting)")  # fmt: skip
     parser.add_argument(
         "--limits",
         action=argparse.BooleanOptionalAction,
