@@ -44,30 +44,30 @@ from diffgcl.control.shooting import ShootingConfig, multiple_shooting, straight
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey
 
 
-def action_bounds(env: Env) -> tuple[np.ndarray, np.ndarray] | None:
-    """The env's action box ``(u_min, u_max)`` where it has one with a finite side (an env with
-    an ``action_bounds()`` method, such as :class:`~diffgcl.envs.mjcf_env.MJCFEnv` from the
-    actuators' ``ctrlrange``); None: unlimited."""
-    method = getattr(env, "action_bounds", None)
+def _env_box(env: Env, method_name: str) -> tuple[np.ndarray, np.ndarray] | None:
+    """``env.<method_name>()``'s ``(lower, upper)`` where the env has the method and a finite
+    side; None otherwise."""
+    method = getattr(env, method_name, None)
     if method is None:
         return None
     lo, hi = method()
     if not (np.isfinite(lo).any() or np.isfinite(hi).any()):
         return None
     return lo, hi
+
+
+def action_bounds(env: Env) -> tuple[np.ndarray, np.ndarray] | None:
+    """The env's action box ``(u_min, u_max)`` where it has one with a finite side (an env with
+    an ``action_bounds()`` method, such as :class:`~diffgcl.envs.mjcf_env.MJCFEnv` from the
+    actuators' ``ctrlrange``); None: unlimited."""
+    return _env_box(env, "action_bounds")
 
 
 def state_bounds(env: Env) -> tuple[np.ndarray, np.ndarray] | None:
     """The env's state limits ``(x_min, x_max)`` where it has a finite one (an env with a
     ``state_bounds()`` method, such as :class:`~diffgcl.envs.mjcf_env.MJCFEnv` from its limited
     joints' ranges); None: unlimited."""
-    method = getattr(env, "state_bounds", None)
-    if method is None:
-        return None
-    lo, hi = method()
-    if not (np.isfinite(lo).any() or np.isfinite(hi).any()):
-        return None
-    return lo, hi
+    return _env_box(env, "state_bounds")
 
 
 def solve_shooting(
@@ -98,10 +98,7 @@ def solve_shooting(
     u_min, u_max = (None, None) if box is None else box
     sbox = state_bounds(env) if limits else None
     x_min, x_max = (None, None) if sbox is None else sbox
-    if goal is None:
-        goals = jax.vmap(lambda x: cost_minimiser(cost, x, dU, T))(x0)
-    else:
-        goals = jnp.broadcast_to(jnp.asarray(goal, x0.dtype), x0.shape)
+    goals = _goals(cost, x0, goal, T, dU)
     U = jnp.zeros((T, dU), x0.dtype) if U_init is None else jnp.asarray(U_init, x0.dtype)
     if U.shape[-2:] != (T, dU):
         raise ValueError(f"trajopt.solve_shooting: U_init must be [T={T}, {dU}] or [C, T, {dU}], "
@@ -193,12 +190,16 @@ def goal_lqr_starts(
     T, dU = env.horizon, env.dU
     box = action_bounds(env) if limits else None
     u_min, u_max = (None, None) if box is None else box
-    if goal is None:
-        goals = jax.vmap(lambda x: cost_minimiser(cost, x, dU, T))(x0)
-    else:
-        goals = jnp.broadcast_to(jnp.asarray(goal, x0.dtype), x0.shape)
+    goals = _goals(cost, x0, goal, T, dU)
     lqr = lambda x, g: goal_lqr_actions(env.step, cost, x, g, T, dU, u_min=u_min, u_max=u_max)
     return jax.vmap(lqr)(x0, goals)
+
+
+def _goals(cost: CostFn, x0: Array, goal: Array | None, T: int, dU: int) -> Array:
+    """[C, dX]: ``goal`` per start, or where the terminal cost is lowest from each start."""
+    if goal is None:
+        return jax.vmap(lambda x: cost_minimiser(cost, x, dU, T))(x0)
+    return jnp.broadcast_to(jnp.asarray(goal, x0.dtype), x0.shape)
 
 
 def lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:

@@ -503,23 +503,9 @@ def _ilqr_loop(step, cost, x0, U_init, config, u_min, u_max) -> tuple[_Loop, Cal
         )
 
     zeros = lambda *shape: jnp.zeros(shape, dtype)
-    quad0 = QuadraticCost(
-        l=zeros(T + 1),
-        l_x=zeros(T + 1, dX),
-        l_u=zeros(T + 1, dU),
-        l_xx=zeros(T + 1, dX, dX),
-        l_uu=zeros(T + 1, dU, dU),
-        l_ux=zeros(T + 1, dU, dX),
-    )
+    quad0 = zero_expansion(T, dX, dU, dtype)
     # Trip 0: zero gains and J = +inf, so its line search is the rollout of U_init.
-    back0 = _Backward(
-        K=zeros(T, dU, dX),
-        k=zeros(T, dU),
-        Q_uu=jnp.broadcast_to(jnp.eye(dU, dtype=dtype), (T, dU, dU)),
-        dV1=zeros(),
-        dV2=zeros(),
-        ok=jnp.ones((), bool),
-    )
+    back0 = no_gains(T, dX, dU, dtype)
     init = _Loop(
         X=jnp.broadcast_to(x0, (T + 1, dX)),
         U=U_init,
@@ -538,6 +524,33 @@ def _ilqr_loop(step, cost, x0, U_init, config, u_min, u_max) -> tuple[_Loop, Cal
         history=jnp.full((n_hist,), jnp.nan, dtype),
     )
     return init, trip
+
+
+def zero_expansion(T: int, dX: int, dU: int, dtype) -> QuadraticCost:
+    """An all-zero cost expansion of T+1 steps: a solver loop's state before its first
+    linearisation."""
+    zeros = lambda *shape: jnp.zeros(shape, dtype)
+    return QuadraticCost(
+        l=zeros(T + 1),
+        l_x=zeros(T + 1, dX),
+        l_u=zeros(T + 1, dU),
+        l_xx=zeros(T + 1, dX, dX),
+        l_uu=zeros(T + 1, dU, dU),
+        l_ux=zeros(T + 1, dU, dX),
+    )
+
+
+def no_gains(T: int, dX: int, dU: int, dtype) -> _Backward:
+    """A backward pass with zero gains (``Q_uu`` the identity): a step of nothing."""
+    zeros = lambda *shape: jnp.zeros(shape, dtype)
+    return _Backward(
+        K=zeros(T, dU, dX),
+        k=zeros(T, dU),
+        Q_uu=jnp.broadcast_to(jnp.eye(dU, dtype=dtype), (T, dU, dU)),
+        dV1=zeros(),
+        dV2=zeros(),
+        ok=jnp.ones((), bool),
+    )
 
 
 def _result(s: _Loop) -> ILQRResult:

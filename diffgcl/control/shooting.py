@@ -69,6 +69,8 @@ from diffgcl.control.ilqr import (
     action_box,
     backward_pass,
     closed_loop_rollout,
+    no_gains,
+    zero_expansion,
 )
 from diffgcl.costs.expansion import expand_cost, trajectory_cost
 from diffgcl.dynamics.autodiff import linearize_trajectory
@@ -366,22 +368,8 @@ def multiple_shooting(
         )
 
     zeros = lambda *shape: jnp.zeros(shape, dtype)
-    quad0 = QuadraticCost(
-        l=zeros(T + 1),
-        l_x=zeros(T + 1, dX),
-        l_u=zeros(T + 1, dU),
-        l_xx=zeros(T + 1, dX, dX),
-        l_uu=zeros(T + 1, dU, dU),
-        l_ux=zeros(T + 1, dU, dX),
-    )
-    back0 = _Backward(
-        K=zeros(T, dU, dX),
-        k=zeros(T, dU),
-        Q_uu=jnp.broadcast_to(jnp.eye(dU, dtype=dtype), (T, dU, dU)),
-        dV1=zeros(),
-        dV2=zeros(),
-        ok=jnp.ones((), bool),
-    )
+    quad0 = zero_expansion(T, dX, dU, dtype)
+    back0 = no_gains(T, dX, dU, dtype)
     # Trip 0: a zero step and J = +inf, so its line search evaluates the initial guess's gaps.
     init = _Shoot(
         X=X_init,
