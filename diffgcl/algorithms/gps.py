@@ -51,6 +51,7 @@ from flax import struct
 from jax import lax
 
 from diffgcl.control.dual import c_step
+from diffgcl.control.ilqr import zero_expansion
 from diffgcl.control.init import init_controller
 from diffgcl.control.lqr import controller_entropy, forward_pass
 from diffgcl.control.step import adapt_step_mult, laplace_cost
@@ -331,13 +332,8 @@ def make_gps_phases(
             prev_dynamics=LinearDynamics(
                 A=zeros(T, dX, dX), B=zeros(T, dX, dU), c=zeros(T, dX), cov=zeros(T, dX, dX)
             ),
-            prev_cost=QuadraticCost(
-                l=zeros(T + 1),
-                l_x=zeros(T + 1, dX),
-                l_u=zeros(T + 1, dU),
-                l_xx=zeros(T + 1, dX, dX),
-                l_uu=zeros(T + 1, dU, dU),
-                l_ux=zeros(T + 1, dU, dX),
+            prev_cost=jax.tree.map(
+                lambda a: jnp.broadcast_to(a, (C, *a.shape)), zero_expansion(T, dX, dU, dtype)
             ),
             prev_x0=InitialStateDistribution(mean=x0_state, cov=zeros(dX, dX)),
             step_mult=jnp.full((C,), config.init_step_mult, dtype),
