@@ -113,6 +113,39 @@ def test_state_limits_meet_the_constrained_optimum():
     assert float(result.cost) > float(free.cost)
 
 
+def test_unstable_system_with_a_binding_box_from_a_far_state_guess():
+    """An unstable linear system (eigenvalues 1 ± 0.45 per step), the action box at 60 % of the
+    free optimum's largest action, and a state guess far from any rollout: the problem is
+    convex, so the solution must be the boxed iLQR's from zero actions. The linear model's
+    step has to keep its feedback unclipped; clipped, the propagated gaps grew without bound
+    and no step was ever accepted."""
+    T = 60
+    A = jnp.array([[1.0, 0.1], [2.0, 1.0]])
+    B = jnp.array([[0.0], [0.1]])
+    Q, QT, r = jnp.diag(jnp.array([1.0, 0.1])), jnp.diag(jnp.array([10.0, 1.0])), 0.01
+
+    def step(x, u):
+        return A @ x + B @ u
+
+    def cost(x, u, t):
+        return jnp.where(t < T, 0.5 * x @ Q @ x + 0.5 * r * u @ u, 0.5 * x @ QT @ x)
+
+    x0 = jnp.array([1.0, 0.0])
+    free = ilqr(step, cost, x0, jnp.zeros((T, 1)))
+    u_max = 0.6 * float(jnp.abs(free.U).max())
+    ref = ilqr(step, cost, x0, jnp.zeros((T, 1)), u_min=-u_max, u_max=u_max)
+    assert float(ref.cost) > float(free.cost)  # the box binds
+    noise = jnp.asarray(np.random.default_rng(0).normal(size=(T + 1, 2)))
+    X_init = straight_line(x0, jnp.zeros(2), T) + noise
+    config = ShootingConfig(barrier_weights=(0.0,), stage_iterations=100)
+    result = jax.jit(lambda X: multiple_shooting(step, cost, x0, X, jnp.zeros((T, 1)), config,
+                                                 u_min=-u_max, u_max=u_max))(X_init)  # fmt: skip
+    assert int(result.status) == CONVERGED
+    assert float(jnp.abs(result.U).max()) <= u_max + 1e-12
+    assert float(result.cost) == pytest.approx(float(ref.cost), rel=1e-8)
+    np.testing.assert_allclose(result.U, ref.U, atol=1e-5)
+
+
 def test_pendulum_swing_up_closes_the_gaps_and_respects_the_box():
     """Swinging the pendulum up from the straight line of states (not a rollout): the result is
     a rollout of its actions that reaches the top, the actions within the torque box; from rest

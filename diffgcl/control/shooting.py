@@ -22,10 +22,14 @@ and the "feasibility-driven" DDP of Mastalli et al. 2020):
 2. the backward pass of iLQR with the gaps (:func:`~diffgcl.control.ilqr.backward_pass`,
    ``gaps=``): gains ``k, K``, actions boxed by projected Newton, ``μ`` regularising ``Q_uu``;
 3. the step of the linear model, ``δu_t = k_t + K_t δx_t``, ``δx_{t+1} = A_t δx_t + B_t δu_t +
-   g_t`` (``δx_0 = 0``): a full step closes every gap of the linear model;
+   g_t`` (``δx_0 = 0``): a full step closes every gap of the linear model. ``δu`` is not
+   clipped to the action box here: the feedback ``K δx`` keeps an unstable model's propagated
+   gaps bounded, and clipping it lets them grow without bound;
 4. a backtracking line search on ``(X + α δX, clip(U + α δU))`` with the ℓ1 merit ``φ = J +
    ν Σ|g|`` (ν raised to twice the cost's slope over the gaps whenever that is larger, so that
-   the step is a descent direction of φ), accepting the first α with Armijo's decrease.
+   the step is a descent direction of φ), accepting the first α with Armijo's decrease. Where
+   the clip binds, the step may not descend; the search then fails, ``μ`` grows and the next
+   step is shorter, until one is accepted.
 
 State limits: each bounded coordinate adds ``w·B(x_max − x) + w·B(x − x_min)`` to every step's
 cost, with ``B`` the relaxed log barrier (Hauser & Saccon 2006): ``−log s`` for ``s > δ``, its
@@ -244,17 +248,18 @@ def multiple_shooting(
         A, B = linearize_trajectory(step, X, U_lin)
         return A, B, expand_cost(barrier_cost(w), X, U)
 
-    def linear_step(A, B, back, gaps, U):
-        """(δX, δU) of the linear model under the gains; actions kept in the box."""
+    def linear_step(A, B, back, gaps):
+        """(δX, δU) of the linear model under the gains, not clipped to the action box: the
+        feedback ``K δx`` is what keeps an unstable model's propagated gaps bounded, and a clip
+        here cuts it (on the tilted double pendulum δX reached 10¹⁶ and every line search
+        failed). The line search clips ``U + α δU`` instead."""
 
         def body(dx, inputs):
-            A_t, B_t, K_t, k_t, g_t, U_t = inputs
+            A_t, B_t, K_t, k_t, g_t = inputs
             du = k_t + K_t @ dx
-            if bounds is not None:
-                du = jnp.clip(du, bounds[0] - U_t, bounds[1] - U_t)
             return A_t @ dx + B_t @ du + g_t, (dx, du)
 
-        dx_T, (dX_, dU_) = lax.scan(body, jnp.zeros((dX,), dtype), (A, B, back.K, back.k, gaps, U))
+        dx_T, (dX_, dU_) = lax.scan(body, jnp.zeros((dX,), dtype), (A, B, back.K, back.k, gaps))
         return jnp.concatenate([dX_, dx_T[None]]), dU_
 
     def line_search(s: _Shoot, w, stationary):
@@ -332,7 +337,7 @@ def multiple_shooting(
             back = backward_pass(A, B, quad, mu, gaps=gaps)
         else:
             back = backward_pass(A, B, quad, mu, bounds[0] - U, bounds[1] - U, s.back.k, gaps)
-        dX_, dU_ = linear_step(A, B, back, gaps, U)
+        dX_, dU_ = linear_step(A, B, back, gaps)
         dX_ = jnp.where(back.ok, dX_, 0.0)
         dU_ = jnp.where(back.ok, dU_, 0.0)
         slope = jnp.sum(quad.l_x * dX_) + jnp.sum(quad.l_u[:-1] * dU_)
