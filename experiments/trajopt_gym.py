@@ -16,7 +16,8 @@ hand (below), this script runs and reports per start state:
   the best of iLQR from zero and from ±0.1 constant actions on each actuator
   (:func:`diffgcl.algorithms.trajopt.solve_restarts`); with ``--shooting`` also multiple shooting
   from the straight line of states to the goal with the joints' ranges as state limits
-  (:func:`diffgcl.algorithms.trajopt.solve_shooting`) and, per start, the cheaper of it and iLQR;
+  (:func:`diffgcl.algorithms.trajopt.solve_shooting`; one start at a time, ``--shooting-batch``)
+  and, per start, the cheaper of it and iLQR; ``--shooting-only``: that row alone;
 * **GPS from iLQR**: trajectory-optimisation GPS (``GPSConfig`` of the project's reacher: 5
   samples, KL step 0.2, init_var 0.1, 20 iterations) started from the iLQR controllers;
 * **GPS from zero** (K = 0, k = 0, Σ = init_var·I; the same compiled program, another initial
@@ -35,6 +36,7 @@ hand (below), this script runs and reports per start state:
     python experiments/trajopt_gym.py --x64 --json runs/trajopt_gym.json
     python experiments/trajopt_gym.py --x64 --models pendulum --hard --json runs/trajopt_hard.json
     python experiments/trajopt_gym.py --models reacher --no-gps --no-trajax  # iLQR only
+    python experiments/trajopt_gym.py --x64 --models double_pendulum --shooting-only --seed 5
 
 The tasks (user code: nothing in the library knows them):
 
@@ -352,6 +354,18 @@ def run_task(name, task, args) -> dict:
     def solve(x0, limits, initial):
         return trajopt.solve(env, task.cost, x0, config=config, limits=limits, initial=initial)
 
+    def shooting_row():  # multiple shooting from the straight line to the goal, joints' ranges kept
+        batch = args.shooting_batch or None
+        shoot = jax.jit(lambda x0: trajopt.solve_shooting(env, task.cost, x0, limits=args.limits,
+                                                          batch_size=batch))  # fmt: skip
+        result, seconds, compile_s = timed(shoot, X0)
+        out["shooting"] = record(result, seconds, compile_s)
+        show("multiple shooting from the straight line", out["shooting"])
+
+    if args.shooting_only:
+        shooting_row()
+        return out
+
     program = jax.jit(lambda x0: solve(x0, args.limits, args.initial))
     result, seconds, compile_s = timed(program, X0)
     out["ilqr"] = record(result, seconds, compile_s)
@@ -360,11 +374,8 @@ def run_task(name, task, args) -> dict:
     start = {"zeros": "zero actions", "goal_lqr": "the goal's LQR", "best": "the better of both"}
     label = f"iLQR from {start[args.initial]}{'' if args.limits else ', no control limits'}"
     show(label, out["ilqr"])
-    if args.shooting:  # multiple shooting from the straight line to the goal, joint limits kept
-        shoot = jax.jit(lambda x0: trajopt.solve_shooting(env, task.cost, x0, limits=args.limits))
-        result, seconds, compile_s = timed(shoot, X0)
-        out["shooting"] = record(result, seconds, compile_s)
-        show("multiple shooting from the straight line", out["shooting"])
+    if args.shooting:
+        shooting_row()
         out["ilqr_or_shooting"] = cheaper_per_start(out["ilqr"], out["shooting"])
         show("per start the cheaper of iLQR and multiple shooting", out["ilqr_or_shooting"])
     if args.initial != "zeros" and args.zeros_row:  # the same solver from zero actions
@@ -509,6 +520,12 @@ def main(argv=None) -> int:
     parser.add_argument("--restarts", action="store_true", help="also iLQR's best of 1 + 2·dU")
     parser.add_argument("--shooting", action="store_true",
                         help="also multiple shooting (trajopt.solve_shooting)")  # fmt: skip
+    parser.add_argument("--shooting-only", action="store_true",
+                        help="multiple shooting's row alone: no iLQR, GPS or trajax")  # fmt: skip
+    parser.add_argument("--shooting-batch", type=int, default=1,
+                        help="multiple shooting's starts solved together (default 1: one at a "
+                             "time, faster on a CPU where the starts' solves differ; 0: all in "
+                             "one vmap)")  # fmt: skip
     parser.add_argument(
         "--limits",
         action=argparse.BooleanOptionalAction,

@@ -10,7 +10,13 @@ from test_lqr import riccati_numpy
 from diffgcl import api
 from diffgcl.algorithms import trajopt
 from diffgcl.algorithms.gps import GPSConfig, make_gps
-from diffgcl.control.ilqr import CONVERGED, ILQRConfig, cost_minimiser, goal_lqr_actions
+from diffgcl.control.ilqr import (
+    CONVERGED,
+    ILQRConfig,
+    ILQRResult,
+    cost_minimiser,
+    goal_lqr_actions,
+)
 from diffgcl.control.init import init_controller
 from diffgcl.dynamics.autodiff import linearize
 
@@ -206,6 +212,27 @@ RAIL = """<mujoco model="rail">
 """
 
 
+def test_cheaper_per_start_picks_by_finite_cost_and_pads_the_history():
+    def result(cost, trips, tag):
+        C = len(cost)
+        z = lambda *shape: jnp.full((C, *shape), float(tag))
+        return ILQRResult(X=z(3, 2), U=z(2, 1), cost=jnp.asarray(cost), K=z(2, 1, 2),
+                          Q_uu=z(2, 1, 1), backward_ok=jnp.ones(C, bool), mu=z(),
+                          iterations=jnp.full(C, tag), accepted=jnp.full(C, tag),
+                          rollouts=jnp.full(C, tag), status=jnp.zeros(C, jnp.int32),
+                          cost_history=z(trips))  # fmt: skip
+
+    a = result([1.0, 5.0, jnp.nan], 4, 1)
+    b = result([2.0, 3.0, 9.0], 6, 2)
+    kept = trajopt.cheaper_per_start(a, b)
+    np.testing.assert_array_equal(kept.cost, [1.0, 3.0, 9.0])
+    np.testing.assert_array_equal(kept.iterations, [1, 2, 2])
+    np.testing.assert_array_equal(kept.X[:, 0, 0], [1.0, 2.0, 2.0])
+    assert kept.cost_history.shape == (3, 6)
+    assert np.all(np.isnan(kept.cost_history[0, 4:])) and np.all(kept.cost_history[0, :4] == 1)
+    np.testing.assert_array_equal(kept.cost_history[1], np.full(6, 2.0))
+
+
 def test_state_limits_from_joint_ranges_keep_a_plan_off_the_stop(tmp_path):
     """A cart whose cost pulls it past its rail's end: the env's state bounds are the limited
     joint's range less its margin and 0.5 % of the range (the unlimited hinge and the velocities
@@ -232,6 +259,18 @@ def test_state_limits_from_joint_ranges_keep_a_plan_off_the_stop(tmp_path):
         for t in range(T):
             x = env.step(x, result.U[c, t])
         np.testing.assert_allclose(X[c, -1], x, atol=1e-9)
+    # One start at a time (lax.map) is the same solve as the vmap.
+    one_by_one = jax.jit(lambda x: trajopt.solve_shooting(env, pull, x, batch_size=1))(
+        env.initial_states()
+    )
+    np.testing.assert_allclose(one_by_one.X, result.X, rtol=0, atol=1e-9)
+    np.testing.assert_array_equal(one_by_one.iterations, result.iterations)
+    # The expert's option: per start the cheaper of iLQR and multiple shooting.
+    ilqr_only = jax.jit(lambda x: trajopt.solve(env, pull, x))(env.initial_states())
+    _, both = jax.jit(lambda x: trajopt.ilqr_controllers(env, pull, x, shooting=True))(
+        env.initial_states()
+    )
+    np.testing.assert_allclose(both.cost, np.minimum(ilqr_only.cost, result.cost), rtol=1e-9)
     # Without the limits the same solver drives the cart into the end stop.
     free = jax.jit(lambda x: trajopt.solve_shooting(env, pull, x, limits=False))(
         env.initial_states()

@@ -79,6 +79,7 @@ def solve_shooting(
     limits: bool = True,
     goal: Array | None = None,
     U_init: Array | None = None,
+    batch_size: int | None = None,
 ) -> ILQRResult:
     """Multiple shooting (:func:`~diffgcl.control.shooting.multiple_shooting`) on
     ``env.step`` with ``cost`` from each start state ``x0: [C, dX]``, from the straight line of
@@ -86,6 +87,13 @@ def solve_shooting(
     :func:`~diffgcl.control.ilqr.cost_minimiser` from each start) and ``U_init`` ([T, dU] or
     [C, T, dU], default zeros). limits: the env's :func:`action_bounds` and :func:`state_bounds`
     (its joints' ranges, kept by the barrier); False: none. ``cost`` is a cost, not a residual.
+
+    batch_size: None solves all C starts in one vmap; an integer solves them in groups of that
+    many (``lax.map``; the same result). A vmapped while loop runs every start as long as the
+    slowest and every line-search trial for all of them, so where the starts' solves differ
+    widely — on a CPU, and where some iterates press a joint's end stop, whose contact makes
+    MJX's step several times dearer — small groups finish far sooner (gymnasium's double
+    pendulum, 7 hard starts: one at a time 299 s, all in one vmap not done after 18 min).
     Returns an ILQRResult with leading axis C (pure; jit it)."""
     x0 = jnp.atleast_2d(x0)
     T, dU = env.horizon, env.dU
@@ -109,8 +117,17 @@ def solve_shooting(
         return multiple_shooting(env.step, cost, x, straight_line(x, g, T), u, config, u_min=u_min,
                                  u_max=u_max, x_min=x_min, x_max=x_max)  # fmt: skip
 
-    return jax.vmap(one)(x0, goals, U)
+    if batch_size is None:
+        return jax.vmap(one)(x0, goals, U)
+    if batch_size < 1:
+        raise ValueError(f"trajopt.solve_shooting: batch_size must be >= 1 or None, got "
+                         f"{batch_size}")  # fmt: skip
+    return lax.map(lambda a: one(*a), (x0, goals, U), batch_size=min(batch_size, C))
 
+
+# ``solve_shooting``'s batch in the expert: one start at a time on a CPU, where a vmapped while
+# loop would run every start as long as the slowest; all at once on an accelerator.
+SOLO = 1 if jax.default_backend() == "cpu" else None
 
 INITIAL_ACTIONS = ("zeros", "goal_lqr", "best")
 # Where the expert's iLQR starts unless told otherwise (``api.expert_demos``, ``diffgcl demos
@@ -208,6 +225,22 @@ def lowest_cost(results: ILQRResult) -> tuple[ILQRResult, Array]:
     return jax.vmap(cheapest_run, in_axes=1)(results)
 
 
+def cheaper_per_start(a: ILQRResult, b: ILQRResult) -> ILQRResult:
+    """Per start the cheaper of two solvers' results (fields [C, ...]; both rollouts of the
+    same cost, so their costs compare; a non-finite cost loses). Their ``cost_history`` may
+    differ in length (iLQR's iterations, multiple shooting's trips): the shorter is padded with
+    NaN."""
+    n = max(a.cost_history.shape[-1], b.cost_history.shape[-1])
+
+    def padded(r):
+        extra = n - r.cost_history.shape[-1]
+        pad = [(0, 0)] * (r.cost_history.ndim - 1) + [(0, extra)]
+        return r.replace(cost_history=jnp.pad(r.cost_history, pad, constant_values=jnp.nan))
+
+    both = jax.tree_util.tree_map(lambda u, v: jnp.stack([u, v]), padded(a), padded(b))
+    return lowest_cost(both)[0]
+
+
 def restart_actions(T: int, dU: int, scale: float, dtype=None) -> Array:
     """Initial action sequences of :func:`solve_restarts`: zeros, and ``±scale`` held constant on
     one actuator at a time -> [1 + 2·dU, T, dU]."""
@@ -255,15 +288,21 @@ def ilqr_controllers(
     U_init: Array | None = None,
     restarts: bool = False,
     initial: str = "zeros",
+    shooting: bool = False,
 ) -> tuple[LinearGaussianController, ILQRResult]:
     """iLQR from every start state (``restarts``: the best of :func:`solve_restarts`; else
     :func:`solve` from ``U_init`` or ``initial``) and the solutions as controllers (fields [C,
     T, ...]); see :func:`diffgcl.control.ilqr.ilqr_controller` for ``init_var`` and
-    ``temperature``."""
+    ``temperature``. shooting: also :func:`solve_shooting` from each start, keeping per start
+    the cheaper of it and iLQR (:func:`cheaper_per_start`)."""
     if restarts:
         result = solve_restarts(env, cost, x0, config)[0]
     else:
         result = solve(env, cost, x0, U_init, config, initial=initial)
+    if shooting:
+        gauss_newton = config is not None and config.gauss_newton
+        plain = squared_residual(cost) if gauss_newton else cost
+        result = cheaper_per_start(result, solve_shooting(env, plain, x0, batch_size=SOLO))
     ctrl = jax.vmap(lambda r: ilqr_controller(r, init_var=init_var, temperature=temperature))(
         result
     )
