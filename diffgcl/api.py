@@ -92,6 +92,7 @@ def expert_demos(
     ilqr=None,
     restarts: bool = False,
     initial: str | None = None,
+    shooting: bool = False,
     verbose: bool = True,
 ) -> DemoSet:
     """Demonstrations for a user with a cost and no demos (:mod:`diffgcl.algorithms.trajopt`).
@@ -104,7 +105,12 @@ def expert_demos(
     solution, so that an unstable system is balanced rather than left to fall (the dearer run
     stops once the other has finished cheaper after as many iterations);
     ``"zeros"`` or ``"goal_lqr"`` runs one of them, see
-    :func:`diffgcl.algorithms.trajopt.solve`), then ``per_start`` noisy rollouts of
+    :func:`diffgcl.algorithms.trajopt.solve`; with ``shooting`` also multiple shooting from
+    the straight line of states to the goal, the joints' ranges kept by a barrier, and per start
+    the cheaper of it and iLQR, :func:`diffgcl.algorithms.trajopt.solve_shooting`: for an
+    unstable system on a short rail, where every rollout iLQR starts from falls — it catches 2
+    of the 7 tilted double-pendulum starts iLQR drops, and costs another compile and a solve
+    one start at a time on a CPU), then ``per_start`` noisy rollouts of
     each solution's closed-loop controller ``u ~ N(K x + k, Σ_t)``, white noise. ``Σ_t`` has the
     shape of ``(Q_uu,t + μI)⁻¹`` — the demonstrator varies most where the cost-to-go is flattest
     — and a mean variance of ``noise_var`` in the normalised actions (0.01: a standard deviation
@@ -157,6 +163,7 @@ def expert_demos(
             temperature=temp,
             restarts=restarts,
             initial=initial,
+            shooting=shooting,
         )
     )
     ctrl, result = solve(X0)

@@ -146,6 +146,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="iLQR's initial actions: zeros, the goal's LQR (for balancing), or (the default) "
         "the better of both",
     )
+    g.add_argument(
+        "--shooting",
+        action="store_true",
+        help="also multiple shooting with the joints' ranges kept, per start the cheaper of it "
+        "and iLQR (for an unstable system on a short rail; another compile)",
+    )
 
 
 def mjcf_demos_command(args) -> int:
@@ -189,6 +195,7 @@ def mjcf_demos_command(args) -> int:
         seed=args.seed,
         path=args.out,
         initial=args.initial,
+        shooting=args.shooting,
     )
     first = {e["condition"]: e for e in reversed(demos.episodes)}
     for c in range(C):
