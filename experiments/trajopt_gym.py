@@ -374,6 +374,13 @@ def run_task(name, task, args) -> dict:
     start = {"zeros": "zero actions", "goal_lqr": "the goal's LQR", "best": "the better of both"}
     label = f"iLQR from {start[args.initial]}{'' if args.limits else ', no control limits'}"
     show(label, out["ilqr"])
+    if args.ilqr_batch:  # the same solve in groups of starts (lax.map) beside the one vmap
+        grouped = jax.jit(lambda x0: trajopt.solve(env, task.cost, x0, config=config,
+                                                   limits=args.limits, initial=args.initial,
+                                                   batch_size=args.ilqr_batch))  # fmt: skip
+        result, seconds, compile_s = timed(grouped, X0)
+        out["ilqr_grouped"] = record(result, seconds, compile_s) | {"batch_size": args.ilqr_batch}
+        show(f"the same, {args.ilqr_batch} start(s) at a time", out["ilqr_grouped"])
     if args.shooting:
         shooting_row()
         out["ilqr_or_shooting"] = cheaper_per_start(out["ilqr"], out["shooting"])
@@ -520,6 +527,9 @@ def main(argv=None) -> int:
     parser.add_argument("--restarts", action="store_true", help="also iLQR's best of 1 + 2·dU")
     parser.add_argument("--shooting", action="store_true",
                         help="also multiple shooting (trajopt.solve_shooting)")  # fmt: skip
+    parser.add_argument("--ilqr-batch", type=int, default=0,
+                        help="also iLQR's row solved N starts at a time (lax.map) beside the "
+                             "one vmap")  # fmt: skip
     parser.add_argument("--shooting-only", action="store_true",
                         help="multiple shooting's row alone: no iLQR, GPS or trajax")  # fmt: skip
     parser.add_argument("--shooting-batch", type=int, default=1,

@@ -128,6 +128,20 @@ def test_restarts_keep_the_lowest_cost(env):
     np.testing.assert_allclose(kept.U[1], one.U[1], rtol=0, atol=1e-12)
 
 
+def test_solving_starts_in_groups_equals_one_vmap(env):
+    """``batch_size``: the starts solved one at a time (``lax.map``) give the vmap's solutions,
+    for the expert's race of two initial sequences as for a single one."""
+    X0 = jnp.concatenate([env.initial_states(), jnp.array([[0.1, -0.2]])])  # 3, groups of 2
+    solve = jax.jit(trajopt.solve, static_argnums=(0, 1), static_argnames=("initial", "batch_size"))
+    for initial in ("zeros", "best"):
+        vmapped = solve(env, cost, X0, initial=initial)
+        grouped = solve(env, cost, X0, initial=initial, batch_size=2)
+        np.testing.assert_allclose(grouped.U, vmapped.U, rtol=0, atol=1e-9)
+        np.testing.assert_array_equal(grouped.iterations, vmapped.iterations)
+    with pytest.raises(ValueError, match="batch_size must be >= 1"):
+        trajopt.solve(env, cost, X0, batch_size=0)
+
+
 def test_gps_from_controllers(env):
     """make_gps_from with the zero controller is make_gps's train (the same keys and numbers);
     started from the iLQR controllers GPS keeps iLQR's success from its first iteration on and

@@ -117,17 +117,16 @@ def solve_shooting(
         return multiple_shooting(env.step, cost, x, straight_line(x, g, T), u, config, u_min=u_min,
                                  u_max=u_max, x_min=x_min, x_max=x_max)  # fmt: skip
 
-    if batch_size is None:
-        return jax.vmap(one)(x0, goals, U)
-    if batch_size < 1:
-        raise ValueError(f"trajopt.solve_shooting: batch_size must be >= 1 or None, got "
-                         f"{batch_size}")  # fmt: skip
-    return lax.map(lambda a: one(*a), (x0, goals, U), batch_size=min(batch_size, C))
+    return map_starts(one, (x0, goals, U), batch_size)
 
 
-# ``solve_shooting``'s batch in the expert: one start at a time on a CPU, where a vmapped while
-# loop would run every start as long as the slowest; all at once on an accelerator.
-SOLO = 1 if jax.default_backend() == "cpu" else None
+def expert_batch_size() -> int | None:
+    """The expert's ``batch_size`` for :func:`solve_shooting`: one start at a time on a CPU,
+    where a vmapped while loop would run every start as long as the slowest; all at once on an
+    accelerator. A function, not a constant: asking for the backend at import would start JAX's
+    backends before a multi-process run's ``jax.distributed.initialize``."""
+    return 1 if jax.default_backend() == "cpu" else None
+
 
 INITIAL_ACTIONS = ("zeros", "goal_lqr", "best")
 # Where the expert's iLQR starts unless told otherwise (``api.expert_demos``, ``diffgcl demos
@@ -152,6 +151,7 @@ def solve(
     limits: bool = True,
     initial: str = "zeros",
     goal: Array | None = None,
+    batch_size: int | None = None,
 ) -> ILQRResult:
     """iLQR on ``env.step`` with ``cost`` from each start state ``x0: [C, dX]`` (pure; jit it).
 
@@ -167,6 +167,8 @@ def solve(
     after as many trips stops there).
     goal: [dX] or [C, dX], the state the LQR stabilises (default: where the terminal cost is
     lowest, :func:`~diffgcl.control.ilqr.cost_minimiser` from each start).
+    batch_size: as in :func:`solve_shooting` (None: all starts in one vmap; an integer: groups
+    of that many, ``lax.map``).
     Returns an :class:`~diffgcl.control.ilqr.ILQRResult` with leading axis C.
     """
     x0 = jnp.atleast_2d(x0)
@@ -180,20 +182,32 @@ def solve(
     config = ILQRConfig() if config is None else config
     box = action_bounds(env) if limits else None
     u_min, u_max = (None, None) if box is None else box
-    run = jax.vmap(lambda x, u: ilqr(env.step, cost, x, u, config, u_min=u_min, u_max=u_max))
+    one = lambda x, u: ilqr(env.step, cost, x, u, config, u_min=u_min, u_max=u_max)
     if U_init is not None or initial == "zeros":
         U = jnp.zeros((T, dU), x0.dtype) if U_init is None else jnp.asarray(U_init, x0.dtype)
         if U.shape[-2:] != (T, dU):
             raise ValueError(f"trajopt.solve: U_init must be [T={T}, {dU}] or [C, T, {dU}], got "
                              f"{tuple(U.shape)}")  # fmt: skip
-        return run(x0, jnp.broadcast_to(U, (C, T, dU)))
+        return map_starts(one, (x0, jnp.broadcast_to(U, (C, T, dU))), batch_size)
     true_cost = squared_residual(cost) if config.gauss_newton else cost
     U_lqr = goal_lqr_starts(env, true_cost, x0, goal, limits=limits)
     if initial == "goal_lqr":
-        return run(x0, U_lqr)
+        return map_starts(one, (x0, U_lqr), batch_size)
     U = jnp.stack([jnp.zeros_like(U_lqr), U_lqr], axis=1)  # [C, 2, T, dU]
     race = lambda x, u: ilqr_best_of(env.step, cost, x, u, config, u_min=u_min, u_max=u_max)[0]
-    return jax.vmap(race)(x0, U)
+    return map_starts(race, (x0, U), batch_size)
+
+
+def map_starts(solve_one: Callable, args: tuple, batch_size: int | None):
+    """``solve_one(*a)`` for each start (the leading axis of every array in ``args``): all in
+    one vmap (``batch_size=None``) or in groups of ``batch_size`` (``lax.map``; the same
+    result). Why groups: :func:`solve_shooting`'s docstring."""
+    if batch_size is None:
+        return jax.vmap(solve_one)(*args)
+    if batch_size < 1:
+        raise ValueError(f"trajopt: batch_size must be >= 1 or None, got {batch_size}")
+    C = args[0].shape[0]
+    return lax.map(lambda a: solve_one(*a), args, batch_size=min(batch_size, C))
 
 
 def goal_lqr_starts(
@@ -302,7 +316,8 @@ def ilqr_controllers(
     if shooting:
         gauss_newton = config is not None and config.gauss_newton
         plain = squared_residual(cost) if gauss_newton else cost
-        result = cheaper_per_start(result, solve_shooting(env, plain, x0, batch_size=SOLO))
+        shot = solve_shooting(env, plain, x0, batch_size=expert_batch_size())
+        result = cheaper_per_start(result, shot)
     ctrl = jax.vmap(lambda r: ilqr_controller(r, init_var=init_var, temperature=temperature))(
         result
     )
