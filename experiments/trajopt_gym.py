@@ -17,7 +17,8 @@ hand (below), this script runs and reports per start state:
   (:func:`diffgcl.algorithms.trajopt.solve_restarts`); with ``--shooting`` also multiple shooting
   from the straight line of states to the goal with the joints' ranges as state limits
   (:func:`diffgcl.algorithms.trajopt.solve_shooting`; one start at a time, ``--shooting-batch``)
-  and, per start, the cheaper of it and iLQR; ``--shooting-only``: that row alone;
+  and, per start, the cheaper of it and iLQR; ``--shooting-only``: that row alone; with
+  ``--ilqr-batch N`` also iLQR's row solved N starts at a time (``lax.map``) beside the vmap;
 * **GPS from iLQR**: trajectory-optimisation GPS (``GPSConfig`` of the project's reacher: 5
   samples, KL step 0.2, init_var 0.1, 20 iterations) started from the iLQR controllers;
 * **GPS from zero** (K = 0, k = 0, Σ = init_var·I; the same compiled program, another initial
