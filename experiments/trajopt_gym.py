@@ -258,7 +258,7 @@ def run_trajax(env, cost, X0, *, maxiter, tol, U_init=None):
     }
 
 
-def cheaper_per_start(a: dict, b: dict) -> dict:
+def cheaper_records(a: dict, b: dict) -> dict:
     """Two runs' records combined: per start the one with the lower final cost (both are
     rollouts of the simulator, so their costs compare); their seconds added."""
     pick = np.asarray(b["cost"]) < np.asarray(a["cost"])
@@ -352,8 +352,9 @@ def run_task(name, task, args) -> dict:
 
     out["action_bounds"] = [np.asarray(b).tolist() for b in env.action_bounds()]
 
-    def solve(x0, limits, initial):
-        return trajopt.solve(env, task.cost, x0, config=config, limits=limits, initial=initial)
+    def solve(x0, limits, initial, batch_size=None):
+        return trajopt.solve(env, task.cost, x0, config=config, limits=limits, initial=initial,
+                             batch_size=batch_size)  # fmt: skip
 
     def shooting_row():  # multiple shooting from the straight line to the goal, joints' ranges kept
         batch = args.shooting_batch or None
@@ -376,15 +377,13 @@ def run_task(name, task, args) -> dict:
     label = f"iLQR from {start[args.initial]}{'' if args.limits else ', no control limits'}"
     show(label, out["ilqr"])
     if args.ilqr_batch:  # the same solve in groups of starts (lax.map) beside the one vmap
-        grouped = jax.jit(lambda x0: trajopt.solve(env, task.cost, x0, config=config,
-                                                   limits=args.limits, initial=args.initial,
-                                                   batch_size=args.ilqr_batch))  # fmt: skip
+        grouped = jax.jit(lambda x0: solve(x0, args.limits, args.initial, args.ilqr_batch))
         result, seconds, compile_s = timed(grouped, X0)
         out["ilqr_grouped"] = record(result, seconds, compile_s) | {"batch_size": args.ilqr_batch}
         show(f"the same, {args.ilqr_batch} start(s) at a time", out["ilqr_grouped"])
     if args.shooting:
         shooting_row()
-        out["ilqr_or_shooting"] = cheaper_per_start(out["ilqr"], out["shooting"])
+        out["ilqr_or_shooting"] = cheaper_records(out["ilqr"], out["shooting"])
         show("per start the cheaper of iLQR and multiple shooting", out["ilqr_or_shooting"])
     if args.initial != "zeros" and args.zeros_row:  # the same solver from zero actions
         zeros, seconds, compile_s = timed(jax.jit(lambda x0: solve(x0, args.limits, "zeros")), X0)
@@ -433,7 +432,7 @@ def run_task(name, task, args) -> dict:
                 tol=args.tol,
                 U_init=U_lqr if init == "lqr" else None,
             )
-            tj = one if tj is None or one is None else cheaper_per_start(tj, one)
+            tj = one if tj is None or one is None else cheaper_records(tj, one)
         if tj is None:
             print("   trajax: not importable, skipped (see the module docstring to install it)")
             out["trajax"] = None
