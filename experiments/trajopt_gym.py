@@ -18,7 +18,8 @@ hand (below), this script runs and reports per start state:
   from the straight line of states to the goal with the joints' ranges as state limits
   (:func:`diffgcl.algorithms.trajopt.solve_shooting`; one start at a time, ``--shooting-batch``)
   and, per start, the cheaper of it and iLQR; ``--shooting-only``: that row alone; with
-  ``--ilqr-batch N`` also iLQR's row solved N starts at a time (``lax.map``) beside the vmap;
+  ``--ilqr-batch N`` also iLQR's row solved N starts at a time (``lax.map``) beside the vmap
+  (``--no-ilqr-vmap``: only in the groups, the row the shooting's per-start choice then uses);
 * **GPS from iLQR**: trajectory-optimisation GPS (``GPSConfig`` of the project's reacher: 5
   samples, KL step 0.2, init_var 0.1, 20 iterations) started from the iLQR controllers;
 * **GPS from zero** (K = 0, k = 0, Σ = init_var·I; the same compiled program, another initial
@@ -281,29 +282,28 @@ def timed(program, *args):
     return out, time.perf_counter() - t0, compile_s
 
 
-def run_task(name, task, args) -> dict:
-    from diffgcl import api
-    from diffgcl.algorithms import trajopt
-    from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams
-    from diffgcl.control.ilqr import STATUS_NAMES, ILQRConfig, ilqr_controller
-    from diffgcl.control.init import init_controller
-    from diffgcl.costs.expansion import trajectory_cost
-    from diffgcl.sim.rollout import rollout_controller
-
-    path = gym_asset(task.xml)
+def gym_env(name, *, seed=0, starts=8, tilt_scale=TILT_SCALE, hard=False, double_weights=None):
+    """(env, task, tilt) of the named task: its model at gymnasium's control period with
+    ``starts`` start states drawn with NumPy seed ``seed`` (``hard``: the pendulum's harder
+    starts; ``tilt``: the hinge angles' scale, None for the reacher), the task's cost (the double
+    pendulum's with ``double_weights`` where given) and success test."""
     import mujoco
 
+    from diffgcl import api
+
+    task = TASKS[name]
+    path = gym_asset(task.xml)
     timestep = mujoco.MjModel.from_xml_path(str(path)).opt.timestep
-    starts = task.starts
-    if args.hard:
+    draw = task.starts
+    if hard:
         if name != "pendulum":
             raise SystemExit("trajopt_gym: --hard is for the pendulum only")
-        starts = pendulum_hard_starts
-    rng = np.random.default_rng(args.seed)
-    tilt = args.tilt_scale if starts in (pendulum_starts, double_starts) else None
-    X0 = starts(rng, args.starts) if tilt is None else starts(rng, args.starts, tilt=tilt)
-    if name == "double_pendulum" and args.double_weights is not None:
-        task = dataclasses.replace(task, cost=double_pendulum_cost(args.double_weights))
+        draw = pendulum_hard_starts
+    rng = np.random.default_rng(seed)
+    tilt = tilt_scale if draw in (pendulum_starts, double_starts) else None
+    X0 = draw(rng, starts) if tilt is None else draw(rng, starts, tilt=tilt)
+    if name == "double_pendulum" and double_weights is not None:
+        task = dataclasses.replace(task, cost=double_pendulum_cost(double_weights))
     env = api.load_model(
         path,
         lapack_free=True,  # see make_mjcf_env: without it the vmapped programs can hang here
@@ -313,6 +313,26 @@ def run_task(name, task, args) -> dict:
         cost=task.cost,
         success=task.success,
     )
+    return env, task, tilt
+
+
+def run_task(name, args) -> dict:
+    from diffgcl.algorithms import trajopt
+    from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams
+    from diffgcl.control.ilqr import STATUS_NAMES, ILQRConfig, ilqr_controller
+    from diffgcl.control.init import init_controller
+    from diffgcl.costs.expansion import trajectory_cost
+    from diffgcl.sim.rollout import rollout_controller
+
+    env, task, tilt = gym_env(
+        name,
+        seed=args.seed,
+        starts=args.starts,
+        tilt_scale=args.tilt_scale,
+        hard=args.hard,
+        double_weights=args.double_weights,
+    )
+    path = gym_asset(task.xml)
     X0 = env.initial_states()
     C, T = X0.shape[0], env.horizon
     out = {
@@ -368,15 +388,20 @@ def run_task(name, task, args) -> dict:
         shooting_row()
         return out
 
-    program = jax.jit(lambda x0: solve(x0, args.limits, args.initial))
+    # iLQR's row in one vmap, or with --ilqr-batch N --no-ilqr-vmap in groups of N starts
+    row_batch = args.ilqr_batch if args.ilqr_batch and not args.ilqr_vmap else None
+    program = jax.jit(lambda x0: solve(x0, args.limits, args.initial, row_batch))
     result, seconds, compile_s = timed(program, X0)
     out["ilqr"] = record(result, seconds, compile_s)
     out["ilqr"]["control_limited"] = args.limits
     out["ilqr"]["initial"] = args.initial
+    out["ilqr"]["batch_size"] = row_batch
     start = {"zeros": "zero actions", "goal_lqr": "the goal's LQR", "best": "the better of both"}
     label = f"iLQR from {start[args.initial]}{'' if args.limits else ', no control limits'}"
+    if row_batch:
+        label += f", {row_batch} start(s) at a time"
     show(label, out["ilqr"])
-    if args.ilqr_batch:  # the same solve in groups of starts (lax.map) beside the one vmap
+    if args.ilqr_batch and args.ilqr_vmap:  # the same solve in groups (lax.map) beside the vmap
         grouped = jax.jit(lambda x0: solve(x0, args.limits, args.initial, args.ilqr_batch))
         result, seconds, compile_s = timed(grouped, X0)
         out["ilqr_grouped"] = record(result, seconds, compile_s) | {"batch_size": args.ilqr_batch}
@@ -530,6 +555,9 @@ def main(argv=None) -> int:
     parser.add_argument("--ilqr-batch", type=int, default=0,
                         help="also iLQR's row solved N starts at a time (lax.map) beside the "
                              "one vmap")  # fmt: skip
+    parser.add_argument("--ilqr-vmap", action=argparse.BooleanOptionalAction, default=True,
+                        help="with --ilqr-batch: --no-ilqr-vmap solves iLQR's row only in the "
+                             "groups, without the one-vmap row")  # fmt: skip
     parser.add_argument("--shooting-only", action="store_true",
                         help="multiple shooting's row alone: no iLQR, GPS or trajax")  # fmt: skip
     parser.add_argument("--shooting-batch", type=int, default=1,
@@ -587,7 +615,7 @@ def main(argv=None) -> int:
     for name in args.models.split(","):
         if name not in TASKS:
             raise SystemExit(f"trajopt_gym: unknown model {name!r}; choose from {list(TASKS)}")
-        results[name] = run_task(name, TASKS[name], args)
+        results[name] = run_task(name, args)
         if args.json:  # written after each model, so a long run keeps what it finished
             args.json.parent.mkdir(parents=True, exist_ok=True)
             summary = {"x64": args.x64, "device": str(jax.devices()[0]), "models": results}
