@@ -9,12 +9,14 @@ from test_ilqr import _lq_problem, _numpy_cost_and_gradient, _pendulum, _riccati
 from diffgcl.control.ilqr import CONVERGED, backward_pass, ilqr
 from diffgcl.control.shooting import (
     ShootingConfig,
+    costates,
     multiple_shooting,
     relaxed_log_barrier,
     state_barrier,
     straight_line,
 )
-from diffgcl.costs.expansion import expand_cost
+from diffgcl.costs.expansion import expand_cost, trajectory_cost
+from diffgcl.dynamics.autodiff import linearize_trajectory
 
 
 def test_relaxed_barrier_is_log_inside_and_c2_at_the_switch():
@@ -113,7 +115,34 @@ def test_state_limits_meet_the_constrained_optimum():
     assert float(result.cost) > float(free.cost)
 
 
-def test_unstable_system_with_a_binding_box_from_a_far_state_guess():
+def test_costates_are_the_cost_gradient_with_respect_to_each_gap():
+    """The multipliers of the dynamics: λ_{t+1} is the derivative of the total cost of the
+    linearised rollout (the actions held) with respect to a push on x_{t+1}, computed here by
+    reverse-mode autodiff of that rollout, independent of the adjoint recursion."""
+    T = 12
+    step, cost = _pendulum(T=T)
+    rng = np.random.default_rng(3)
+    U = jnp.asarray(rng.normal(size=(T, 1)))
+    X = [jnp.array([0.4, -0.2])]
+    for t in range(T):
+        X.append(step(X[-1], U[t]))
+    X = jnp.stack(X)
+    A, B = linearize_trajectory(step, X, U)
+    quad = expand_cost(cost, X, U)
+
+    def pushed_cost(pushes):  # pushes [T, dX]: added to x_1 .. x_T of the linearised rollout
+        dx, xs = jnp.zeros(2), [X[0]]
+        for t in range(T):
+            dx = A[t] @ dx + pushes[t]
+            xs.append(X[t + 1] + dx)
+        return trajectory_cost(cost, jnp.stack(xs), U)
+
+    reference = jax.grad(pushed_cost)(jnp.zeros((T, 2)))
+    np.testing.assert_allclose(costates(A, quad), reference, rtol=1e-10, atol=1e-10)
+
+
+@pytest.mark.parametrize("merit_rule", ["slope", "multipliers"])
+def test_unstable_system_with_a_binding_box_from_a_far_state_guess(merit_rule):
     """An unstable linear system (eigenvalues 1 ± 0.45 per step), the action box at 60 % of the
     free optimum's largest action, and a state guess far from any rollout: the problem is
     convex, so the solution must be the boxed iLQR's from zero actions. The linear model's
@@ -137,7 +166,7 @@ def test_unstable_system_with_a_binding_box_from_a_far_state_guess():
     assert float(ref.cost) > float(free.cost)  # the box binds
     noise = jnp.asarray(np.random.default_rng(0).normal(size=(T + 1, 2)))
     X_init = straight_line(x0, jnp.zeros(2), T) + noise
-    config = ShootingConfig(barrier_weights=(0.0,), stage_iterations=100)
+    config = ShootingConfig(barrier_weights=(0.0,), stage_iterations=100, merit_rule=merit_rule)
     result = jax.jit(lambda X: multiple_shooting(step, cost, x0, X, jnp.zeros((T, 1)), config,
                                                  u_min=-u_max, u_max=u_max))(X_init)  # fmt: skip
     assert int(result.status) == CONVERGED
@@ -181,6 +210,8 @@ def test_config_rejects_bad_settings_and_shapes():
         ShootingConfig(barrier_weights=())
     with pytest.raises(ValueError, match="backtrack"):
         ShootingConfig(backtrack=1.5)
+    with pytest.raises(ValueError, match="merit_rule"):
+        ShootingConfig(merit_rule="filter")
     step, cost = _pendulum(T=4)
     with pytest.raises(ValueError, match="X_init must be"):
         multiple_shooting(step, cost, jnp.zeros(2), jnp.zeros((4, 2)), jnp.zeros((4, 1)))

@@ -27,7 +27,8 @@ and the "feasibility-driven" DDP of Mastalli et al. 2020):
    gaps bounded, and clipping it lets them grow without bound;
 4. a backtracking line search on ``(X + α δX, clip(U + α δU))`` with the ℓ1 merit ``φ = J +
    ν Σ|g|`` (ν raised to twice the cost's slope over the gaps whenever that is larger, so that
-   the step is a descent direction of φ), accepting the first α with Armijo's decrease. Where
+   the step is a descent direction of φ; or, with ``merit_rule="multipliers"``, twice the
+   largest costate, below), accepting the first α with Armijo's decrease. Where
    the clip binds, the step may not descend; the search then fails, ``μ`` grows and the next
    step is shorter, until one is accepted.
 
@@ -80,6 +81,8 @@ from diffgcl.costs.expansion import expand_cost, trajectory_cost
 from diffgcl.dynamics.autodiff import linearize_trajectory
 from diffgcl.types import Array, CostFn, QuadraticCost
 
+MERIT_RULES = ("slope", "multipliers")
+
 
 @dataclass(frozen=True)
 class ShootingConfig:
@@ -92,7 +95,14 @@ class ShootingConfig:
     more than ``step_tol·(1 + max|U|)``, or when the gaps are below it and the cost's slope
     along the next step is below ``tol·(1 + |J|)`` (stationary: no step left to take);
     line_search_steps, backtrack, armijo: the line search ``α = backtrack^i``; merit_weight:
-    the initial ν of the merit ``J + ν Σ|g|`` (raised as the module docstring says); mu_init,
+    the initial ν of the merit ``J + ν Σ|g|``; merit_rule: how ν follows — ``"slope"`` (the
+    default): raised to twice the cost's slope along the step over the gaps whenever that is
+    larger, never lowered; ``"multipliers"``: set each iteration to twice the largest costate
+    ``|λ|`` of the linearised problem (``λ_T = l_x(T)``, ``λ_t = l_x(t) + A_tᵀ λ_{t+1}``, the
+    multipliers of the dynamics), the exact ℓ1 penalty's threshold (Nocedal & Wright, ch. 15
+    and 18). The slope rule grows without bound as the gaps shrink towards ``gap_tol``, and
+    with ν that large each later stage's line search accepts only tiny steps (docs/trajopt.md);
+    the costates do not depend on the gaps. mu_init,
     mu_min, mu_max, mu_shrink, mu_grow: the regularisation of ``Q_uu`` (multiplied by
     ``mu_shrink`` after an accepted step, and set to 0 below ``mu_min``; by ``mu_grow`` after a
     failed one, at least to ``mu_min``; a stage ends when it passes ``mu_max``).
@@ -108,6 +118,7 @@ class ShootingConfig:
     backtrack: float = 0.5
     armijo: float = 1e-4
     merit_weight: float = 100.0
+    merit_rule: str = "slope"
     mu_init: float = 0.0
     mu_min: float = 1e-8
     mu_max: float = 1e10
@@ -124,6 +135,10 @@ class ShootingConfig:
             raise ValueError("ShootingConfig: stage_iterations and line_search_steps must be >= 1")
         if not 0.0 < self.backtrack < 1.0:
             raise ValueError(f"ShootingConfig: backtrack must be in (0, 1), got {self.backtrack}")
+        if self.merit_rule not in MERIT_RULES:
+            raise ValueError(
+                f"ShootingConfig: merit_rule must be one of {MERIT_RULES}, got {self.merit_rule!r}"
+            )
         if self.barrier_delta <= 0:
             raise ValueError(f"ShootingConfig: barrier_delta must be > 0, got {self.barrier_delta}")
 
@@ -149,6 +164,19 @@ def state_barrier(x: Array, x_min: Array, x_max: Array, delta: float) -> Array:
     terms = jnp.where(lo_ok, relaxed_log_barrier(s_lo, delta), 0.0)
     terms = terms + jnp.where(hi_ok, relaxed_log_barrier(s_hi, delta), 0.0)
     return jnp.sum(terms)
+
+
+def costates(A: Array, quad: QuadraticCost) -> Array:
+    """The multipliers ``λ_{t+1}`` [T, dX] of the dynamics ``x_{t+1} = f(x_t, u_t)`` in the
+    linearised problem, by the adjoint recursion ``λ_T = l_x(T)``, ``λ_t = l_x(t) + A_tᵀ
+    λ_{t+1}`` (the Lagrangian's stationarity in each state); row t belongs to the gap t."""
+
+    def back(lam_next, inputs):
+        A_t, l_x_t = inputs
+        return l_x_t + A_t.T @ lam_next, lam_next
+
+    _, lams = lax.scan(back, quad.l_x[-1], (A, quad.l_x[:-1]), reverse=True)
+    return lams
 
 
 def straight_line(x0: Array, x_goal: Array, T: int) -> Array:
@@ -341,13 +369,16 @@ def multiple_shooting(
         dX_ = jnp.where(back.ok, dX_, 0.0)
         dU_ = jnp.where(back.ok, dU_, 0.0)
         slope = jnp.sum(quad.l_x * dX_) + jnp.sum(quad.l_u[:-1] * dU_)
-        # ν only grows while the gaps are real: against rounding-sized gaps it would blow up and
-        # the merit would be rounding noise.
-        gap_sum = jnp.sum(jnp.abs(gaps))
-        real = jnp.max(jnp.abs(gaps)) >= config.gap_tol
-        nu = jnp.where(
-            real, jnp.maximum(s.nu, 2.0 * jnp.abs(slope) / jnp.where(real, gap_sum, 1.0)), s.nu
-        )
+        if config.merit_rule == "multipliers":
+            nu = jnp.maximum(2.0 * jnp.max(jnp.abs(costates(A, quad))), 1e-6)
+        else:
+            # ν only grows while the gaps are real: against rounding-sized gaps it would blow up
+            # and the merit would be rounding noise.
+            gap_sum = jnp.sum(jnp.abs(gaps))
+            real = jnp.max(jnp.abs(gaps)) >= config.gap_tol
+            nu = jnp.where(
+                real, jnp.maximum(s.nu, 2.0 * jnp.abs(slope) / jnp.where(real, gap_sum, 1.0)), s.nu
+            )
         return _Shoot(
             X=X,
             U=U,
