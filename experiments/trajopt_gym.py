@@ -20,6 +20,8 @@ hand (below), this script runs and reports per start state:
   and, per start, the cheaper of it and iLQR; ``--shooting-only``: that row alone; with
   ``--ilqr-batch N`` also iLQR's row solved N starts at a time (``lax.map``) beside the vmap
   (``--no-ilqr-vmap``: only in the groups, the row the shooting's per-start choice then uses);
+  ``--shooting-merit multipliers``: multiple shooting with ``ShootingConfig.merit_rule``
+  ``"multipliers"``;
 * **GPS from iLQR**: trajectory-optimisation GPS (``GPSConfig`` of the project's reacher: 5
   samples, KL step 0.2, init_var 0.1, 20 iterations) started from the iLQR controllers;
 * **GPS from zero** (K = 0, k = 0, Σ = init_var·I; the same compiled program, another initial
@@ -321,6 +323,7 @@ def run_task(name, args) -> dict:
     from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams
     from diffgcl.control.ilqr import STATUS_NAMES, ILQRConfig, ilqr_controller
     from diffgcl.control.init import init_controller
+    from diffgcl.control.shooting import ShootingConfig
     from diffgcl.costs.expansion import trajectory_cost
     from diffgcl.sim.rollout import rollout_controller
 
@@ -378,7 +381,9 @@ def run_task(name, args) -> dict:
 
     def shooting_row():  # multiple shooting from the straight line to the goal, joints' ranges kept
         batch = args.shooting_batch or None
-        shoot = jax.jit(lambda x0: trajopt.solve_shooting(env, task.cost, x0, limits=args.limits,
+        config = ShootingConfig(merit_rule=args.shooting_merit)
+        shoot = jax.jit(lambda x0: trajopt.solve_shooting(env, task.cost, x0, config,
+                                                          limits=args.limits,
                                                           batch_size=batch))  # fmt: skip
         result, seconds, compile_s = timed(shoot, X0)
         out["shooting"] = record(result, seconds, compile_s)
@@ -555,6 +560,8 @@ def main(argv=None) -> int:
     parser.add_argument("--ilqr-batch", type=int, default=0,
                         help="also iLQR's row solved N starts at a time (lax.map) beside the "
                              "one vmap")  # fmt: skip
+    parser.add_argument("--shooting-merit", choices=("slope", "multipliers"), default="slope",
+                        help="multiple shooting's ShootingConfig.merit_rule")  # fmt: skip
     parser.add_argument("--ilqr-vmap", action=argparse.BooleanOptionalAction, default=True,
                         help="with --ilqr-batch: --no-ilqr-vmap solves iLQR's row only in the "
                              "groups, without the one-vmap row")  # fmt: skip
