@@ -381,8 +381,8 @@ def run_task(name, args) -> dict:
 
     def shooting_row():  # multiple shooting from the straight line to the goal, joints' ranges kept
         batch = args.shooting_batch or None
-        config = ShootingConfig(merit_rule=args.shooting_merit)
-        shoot = jax.jit(lambda x0: trajopt.solve_shooting(env, task.cost, x0, config,
+        shooting_config = ShootingConfig(merit_rule=args.shooting_merit)
+        shoot = jax.jit(lambda x0: trajopt.solve_shooting(env, task.cost, x0, shooting_config,
                                                           limits=args.limits,
                                                           batch_size=batch))  # fmt: skip
         result, seconds, compile_s = timed(shoot, X0)
@@ -544,6 +544,8 @@ def run_task(name, args) -> dict:
 
 
 def main(argv=None) -> int:
+    from diffgcl.control.shooting import MERIT_RULES
+
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--models", default=",".join(TASKS), help="comma-separated")
     parser.add_argument("--starts", type=int, default=8, help="start states per model")
@@ -560,7 +562,7 @@ def main(argv=None) -> int:
     parser.add_argument("--ilqr-batch", type=int, default=0,
                         help="also iLQR's row solved N starts at a time (lax.map) beside the "
                              "one vmap")  # fmt: skip
-    parser.add_argument("--shooting-merit", choices=("slope", "multipliers"), default="slope",
+    parser.add_argument("--shooting-merit", choices=MERIT_RULES, default="slope",
                         help="multiple shooting's ShootingConfig.merit_rule")  # fmt: skip
     parser.add_argument("--ilqr-vmap", action=argparse.BooleanOptionalAction, default=True,
                         help="with --ilqr-batch: --no-ilqr-vmap solves iLQR's row only in the "

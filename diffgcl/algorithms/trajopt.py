@@ -316,15 +316,15 @@ def ilqr_controllers(
     6.5 s, ``experiments/any_mjcf.py``'s models under 0.1 s), and in groups the solutions
     differ by rounding, which rGCL learning from their demos turned into other results on
     any_mjcf's cart-pole (``docs/trajopt.md``)."""
+    batch = expert_batch_size() if shooting else None
     if restarts:
         result = solve_restarts(env, cost, x0, config)[0]
     else:
-        batch = expert_batch_size() if shooting else None
         result = solve(env, cost, x0, U_init, config, initial=initial, batch_size=batch)
     if shooting:
         gauss_newton = config is not None and config.gauss_newton
         plain = squared_residual(cost) if gauss_newton else cost
-        shot = solve_shooting(env, plain, x0, batch_size=expert_batch_size())
+        shot = solve_shooting(env, plain, x0, batch_size=batch)
         result = cheaper_per_start(result, shot)
     ctrl = jax.vmap(lambda r: ilqr_controller(r, init_var=init_var, temperature=temperature))(
         result
