@@ -6,8 +6,9 @@ import numpy as np
 import pytest
 from test_ilqr import _lq_problem, _numpy_cost_and_gradient, _pendulum, _riccati_rollout
 
-from diffgcl.control.ilqr import CONVERGED, backward_pass, ilqr
+from diffgcl.control.ilqr import CONVERGED, STUCK, backward_pass, ilqr
 from diffgcl.control.shooting import (
+    MERIT_RULES,
     ShootingConfig,
     costates,
     multiple_shooting,
@@ -141,7 +142,7 @@ def test_costates_are_the_cost_gradient_with_respect_to_each_gap():
     np.testing.assert_allclose(costates(A, quad), reference, rtol=1e-10, atol=1e-10)
 
 
-@pytest.mark.parametrize("merit_rule", ["slope", "multipliers"])
+@pytest.mark.parametrize("merit_rule", MERIT_RULES)
 def test_unstable_system_with_a_binding_box_from_a_far_state_guess(merit_rule):
     """An unstable linear system (eigenvalues 1 ± 0.45 per step), the action box at 60 % of the
     free optimum's largest action, and a state guess far from any rollout: the problem is
@@ -205,13 +206,49 @@ def test_pendulum_swing_up_closes_the_gaps_and_respects_the_box():
     assert float(batched.cost[0]) == pytest.approx(float(ref.cost), rel=1e-5)
 
 
+def test_fallback_attempt_restarts_from_the_guess_and_keeps_the_cheaper():
+    """With a fallback rule, an attempt that ends stuck is followed by one under the other rule
+    from the same initial guess: its iterations must be those of that rule run alone (the
+    restart leaves nothing of the first attempt behind), and the result the cheaper of the two
+    runs alone. A tiny ``mu_max`` makes the pendulum's swing-up end stuck under both rules."""
+    T = 40
+    step, cost = _pendulum(T=T)
+    x0 = jnp.array([0.3, -0.5])
+    X = straight_line(x0, jnp.array([jnp.pi, 0.0]), T)
+    base = dict(barrier_weights=(0.0,), stage_iterations=200, line_search_steps=2, mu_max=1.0)
+
+    def run(**rules):
+        config = ShootingConfig(**base, **rules)
+        return jax.jit(lambda X: multiple_shooting(step, cost, x0, X, jnp.zeros((T, 1)), config,
+                                                   u_min=-4.0, u_max=4.0))(X)  # fmt: skip
+
+    slope = run(merit_rule="slope", fallback_rule=None)
+    filt = run(merit_rule="filter", fallback_rule=None)
+    both = run(merit_rule="slope", fallback_rule="filter")
+    assert int(slope.status) == STUCK and int(filt.status) == STUCK
+    n1, n2 = int(slope.iterations) + 1, int(filt.iterations) + 1  # trips, the guess's included
+    assert int(both.iterations) == n1 + n2 - 2
+    np.testing.assert_allclose(both.cost_history[:n1], slope.cost_history[:n1], rtol=1e-12)
+    np.testing.assert_allclose(both.cost_history[n1 : n1 + n2], filt.cost_history[:n2], rtol=1e-12)
+    assert float(both.cost) == min(float(slope.cost), float(filt.cost))
+    # Without a stuck end there is no second attempt.
+    free = dict(base, line_search_steps=20, mu_max=1e10)
+    config = ShootingConfig(**free, merit_rule="filter", fallback_rule="slope")
+    one = jax.jit(lambda X: multiple_shooting(step, cost, x0, X, jnp.zeros((T, 1)), config,
+                                              u_min=-4.0, u_max=4.0))(X)  # fmt: skip
+    assert int(one.status) == CONVERGED
+    assert np.isnan(np.asarray(one.cost_history)[int(one.iterations) + 1 :]).all()
+
+
 def test_config_rejects_bad_settings_and_shapes():
     with pytest.raises(ValueError, match="barrier_weights"):
         ShootingConfig(barrier_weights=())
     with pytest.raises(ValueError, match="backtrack"):
         ShootingConfig(backtrack=1.5)
     with pytest.raises(ValueError, match="merit_rule"):
-        ShootingConfig(merit_rule="filter")
+        ShootingConfig(merit_rule="penalty")
+    with pytest.raises(ValueError, match="fallback_rule"):
+        ShootingConfig(fallback_rule="penalty")
     step, cost = _pendulum(T=4)
     with pytest.raises(ValueError, match="X_init must be"):
         multiple_shooting(step, cost, jnp.zeros(2), jnp.zeros((4, 2)), jnp.zeros((4, 1)))
