@@ -20,8 +20,8 @@ hand (below), this script runs and reports per start state:
   and, per start, the cheaper of it and iLQR; ``--shooting-only``: that row alone; with
   ``--ilqr-batch N`` also iLQR's row solved N starts at a time (``lax.map``) beside the vmap
   (``--no-ilqr-vmap``: only in the groups, the row the shooting's per-start choice then uses);
-  ``--shooting-merit multipliers``: multiple shooting with ``ShootingConfig.merit_rule``
-  ``"multipliers"``;
+  ``--shooting-merit RULE``, ``--shooting-fallback RULE|none``: multiple shooting with that
+  ``ShootingConfig.merit_rule`` and ``fallback_rule``;
 * **GPS from iLQR**: trajectory-optimisation GPS (``GPSConfig`` of the project's reacher: 5
   samples, KL step 0.2, init_var 0.1, 20 iterations) started from the iLQR controllers;
 * **GPS from zero** (K = 0, k = 0, Σ = init_var·I; the same compiled program, another initial
@@ -381,12 +381,19 @@ def run_task(name, args) -> dict:
 
     def shooting_row():  # multiple shooting from the straight line to the goal, joints' ranges kept
         batch = args.shooting_batch or None
-        shooting_config = ShootingConfig(merit_rule=args.shooting_merit)
+        rules = {}  # ShootingConfig's defaults unless asked otherwise
+        if args.shooting_merit is not None:
+            rules["merit_rule"] = args.shooting_merit
+        if args.shooting_fallback is not None:
+            fallback = args.shooting_fallback
+            rules["fallback_rule"] = None if fallback == "none" else fallback
+        shooting_config = ShootingConfig(**rules)
         shoot = jax.jit(lambda x0: trajopt.solve_shooting(env, task.cost, x0, shooting_config,
                                                           limits=args.limits,
                                                           batch_size=batch))  # fmt: skip
         result, seconds, compile_s = timed(shoot, X0)
         out["shooting"] = record(result, seconds, compile_s)
+        out["shooting"]["rules"] = list(shooting_config.rules)
         show("multiple shooting from the straight line", out["shooting"])
 
     if args.shooting_only:
@@ -562,8 +569,12 @@ def main(argv=None) -> int:
     parser.add_argument("--ilqr-batch", type=int, default=0,
                         help="also iLQR's row solved N starts at a time (lax.map) beside the "
                              "one vmap")  # fmt: skip
-    parser.add_argument("--shooting-merit", choices=MERIT_RULES, default="slope",
-                        help="multiple shooting's ShootingConfig.merit_rule")  # fmt: skip
+    parser.add_argument("--shooting-merit", choices=MERIT_RULES, default=None,
+                        help="multiple shooting's ShootingConfig.merit_rule (default: its "
+                             "default)")  # fmt: skip
+    parser.add_argument("--shooting-fallback", choices=MERIT_RULES + ("none",), default=None,
+                        help="multiple shooting's ShootingConfig.fallback_rule (default: its "
+                             "default)")  # fmt: skip
     parser.add_argument("--ilqr-vmap", action=argparse.BooleanOptionalAction, default=True,
                         help="with --ilqr-batch: --no-ilqr-vmap solves iLQR's row only in the "
                              "groups, without the one-vmap row")  # fmt: skip
