@@ -109,7 +109,7 @@ def expert_demos(
     the straight line of states to the goal, the joints' ranges kept by a barrier, and per start
     the cheaper of it and iLQR, :func:`diffgcl.algorithms.trajopt.solve_shooting`: for an
     unstable system on a short rail, where every rollout iLQR starts from falls — of the
-    tilted double pendulum's starts iLQR drops it catches 2 of 7 on the seeds it was built on
+    tilted double pendulum's starts iLQR drops it catches 3 of 7 on the seeds it was tuned on
     and 3 of 7 on seeds never looked at; it costs another compile, and both solvers then go one
     start at a time on a CPU), then ``per_start`` noisy rollouts of
     each solution's closed-loop controller ``u ~ N(K x + k, Σ_t)``, white noise. ``Σ_t`` has the
