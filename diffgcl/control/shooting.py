@@ -375,8 +375,7 @@ def multiple_shooting(
         ok = ~dominated & (h1 <= s.h_max) & jnp.where(cost_only, armijo, decrease)
         return ok, cost_only & armijo
 
-    def line_search(s: _Shoot, w, stationary):
-        h0 = jnp.sum(jnp.abs(s.gaps))
+    def line_search(s: _Shoot, w, stationary, h0):
         first = s.trip == s.attempt_start
 
         def cond(c):
@@ -415,11 +414,11 @@ def multiple_shooting(
             & (jnp.max(jnp.abs(s.gaps)) < config.gap_tol)
             & (-s.slope < config.tol * (1.0 + jnp.abs(s.J)))
         )
-        accepted, X, U, gaps, J, moved, n, cost_only = line_search(s, w, stationary)
+        h0 = jnp.sum(jnp.abs(s.gaps))  # the current iterate's gaps (ℓ1)
+        accepted, X, U, gaps, J, moved, n, cost_only = line_search(s, w, stationary, h0)
         # The filter: an accepted step not judged on the cost alone adds its start's entry (the
         # gaps and cost no later trial of the stage may come near); the first iterate's gaps set
         # the envelope.
-        h0 = jnp.sum(jnp.abs(s.gaps))
         grow = accepted & ~first & ~cost_only
         slot = s.filter_n % FILTER_SIZE
         filter_h = jnp.where(
@@ -483,7 +482,7 @@ def multiple_shooting(
         if "multipliers" in rules:
             nu_multipliers = jnp.maximum(2.0 * jnp.max(jnp.abs(costates(A, quad))), 1e-6)
         nu = by_attempt(s, [nu_multipliers if r == "multipliers" else nu_slope for r in rules])
-        s_next = _Shoot(
+        s_next = s.replace(  # the attempt and what an earlier attempt kept carry over
             X=X,
             U=U,
             gaps=gaps,
@@ -505,12 +504,6 @@ def multiple_shooting(
             stage=stage,
             stage_trip=stage_trip,
             trip=s.trip + 1,
-            attempt=s.attempt,
-            attempt_start=s.attempt_start,
-            kept_X=s.kept_X,
-            kept_U=s.kept_U,
-            kept_back=s.kept_back,
-            kept_mu=s.kept_mu,
             accepted=s.accepted + (accepted & ~first).astype(jnp.int32),
             rollouts=s.rollouts + n,
             done=done | (s.trip + 1 >= n_hist),
