@@ -25,7 +25,10 @@ hand (below), this script runs and reports per start state:
 * **GPS from iLQR**: trajectory-optimisation GPS (``GPSConfig`` of the project's reacher: 5
   samples, KL step 0.2, init_var 0.1, 20 iterations) started from the iLQR controllers;
 * **GPS from zero** (K = 0, k = 0, Σ = init_var·I; the same compiled program, another initial
-  controller), the baseline; both also with KL step 1.0 (a traced hyperparameter);
+  controller), the baseline; both also with KL step 1.0 (``--gps-settings KL:VAR,...``: the
+  (KL step, init_var) pairs, traced hyperparameters of one program; ``--gps-iterations``: the
+  success after 20 iterations and at the end; ``--gps-cost-scale``: GPS sees the cost times
+  that);
 * **trajax** (``trajax.optimizers.ilqr``, google/trajax) on the same model, cost, horizon and
   start states, from the same initial actions (zeros, or the goal's LQR with ``--initial
   goal_lqr``), if it is importable: iterations, final cost, seconds after compile. trajax
@@ -318,6 +321,23 @@ def gym_env(name, *, seed=0, starts=8, tilt_scale=TILT_SCALE, hard=False, double
     return env, task, tilt
 
 
+# GPS's (kl_step, init_var) settings: the project's reacher step, and a five times larger one.
+GPS_SETTINGS = ((0.2, 0.1), (1.0, 0.1))
+
+
+def gps_settings(text: str) -> tuple[tuple[float, float], ...]:
+    """``--gps-settings``: ``KL:VAR,...`` -> ((kl_step, init_var), ...), each positive."""
+    try:
+        pairs = tuple(tuple(float(v) for v in item.split(":")) for item in text.split(","))
+    except ValueError:
+        pairs = ()
+    if not pairs or any(len(p) != 2 or min(p) <= 0 for p in pairs):
+        raise argparse.ArgumentTypeError(
+            f"expected KL:VAR,... with positive numbers (e.g. 0.2:0.1,1.0:0.1), got {text!r}"
+        )
+    return pairs
+
+
 def run_task(name, args) -> dict:
     from diffgcl.algorithms import trajopt
     from diffgcl.algorithms.gps import GPSConfig, GPSHyperparams
@@ -486,8 +506,13 @@ def run_task(name, args) -> dict:
         gps_config = GPSConfig(
             iterations=args.gps_iterations, num_samples=5, kl_step=0.2, init_var=0.1
         )
-        train = trajopt.make_gps_from(gps_config, env, task.cost, x0=X0)
-        settings = [(0.2, 0.1), (1.0, 0.1)]  # (kl_step, init_var)
+        scale = args.gps_cost_scale  # GPS sees the cost times this; the figures are unscaled
+
+        def gps_cost(x, u, t):
+            return scale * task.cost(x, u, t)
+
+        train = trajopt.make_gps_from(gps_config, env, gps_cost, x0=X0)
+        settings = args.gps_settings  # (kl_step, init_var) pairs
         dtype = X0.dtype
         hps = GPSHyperparams(
             kl_step=jnp.asarray([s[0] for s in settings], dtype),
@@ -528,7 +553,12 @@ def run_task(name, args) -> dict:
         final, cost = np.asarray(final), np.asarray(cost)  # [S, init, H, C]
         at = min(19, args.gps_iterations - 1)
         out["gps"] = {
-            "config": {"samples": 5, "iterations": args.gps_iterations, "seeds": args.gps_seeds},
+            "config": {
+                "samples": 5,
+                "iterations": args.gps_iterations,
+                "seeds": args.gps_seeds,
+                "cost_scale": scale,
+            },
             "settings": [{"kl_step": k, "init_var": v} for k, v in settings],
             "seconds": seconds,
             "compile_seconds": compile_s,
@@ -562,6 +592,13 @@ def main(argv=None) -> int:
     parser.add_argument("--gps", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--gps-iterations", type=int, default=20)
     parser.add_argument("--gps-seeds", type=int, default=1)
+    parser.add_argument("--gps-cost-scale", type=float, default=1.0,
+                        help="GPS minimises the task's cost times this (a check that the KL "
+                             "step, not the cost's units, sets its pace)")  # fmt: skip
+    parser.add_argument("--gps-settings", type=gps_settings, default=GPS_SETTINGS,
+                        metavar="KL:VAR,...",
+                        help="GPS's (kl_step, init_var) pairs, each run from both initial "
+                             "controllers (default 0.2:0.1,1.0:0.1)")  # fmt: skip
     parser.add_argument("--trajax", action=argparse.BooleanOptionalAction, default=True)
     parser.add_argument("--restarts", action="store_true", help="also iLQR's best of 1 + 2·dU")
     parser.add_argument("--shooting", action="store_true",
