@@ -33,6 +33,12 @@ converge on, so IPOPT solves a smoothed stop (a tanh switch, a softplus clip: ``
 tightened in five steps); each solution is replayed in C MuJoCo, whose stops are exact, and
 judged by the success test.
 
+``--reach N``: for each start also the highest its tip can be kept over the first 1.5 s with the
+cart within ``--rail`` (IPOPT maximising the lowest tip height; no cost, no end box: a
+relaxation of the success test), along the rail from the loosest catch and from ``N`` initial
+guesses (the straight line, random full pushes). A start whose best stays below 1 m is one
+IPOPT finds no catch for either way.
+
 ``--sqp`` also runs a multiple-shooting SQP written here in NumPy (Gauss-Newton, the LQ
 subproblem with the shooting gaps solved by a Riccati sweep, actions clamped to the box, an ℓ1
 merit on the gaps) from the same straight line, on C MuJoCo's own step (central finite
@@ -46,6 +52,7 @@ script says so and stops.
 
     python experiments/double_pendulum_catch.py --seeds 1,2,3,4,5,6,7 --json runs/dp_catch.json
     python experiments/double_pendulum_catch.py --keys 3:6,7:5 --stops
+    python experiments/double_pendulum_catch.py --keys 4:5,5:2 --reach 12
     python experiments/double_pendulum_catch.py --keys 4:4,5:4 --sqp --rail-penalty 1e4
 """
 
@@ -309,6 +316,113 @@ def catch_with_stops(plant, x0, X, U, bound=1.1):
     return rows
 
 
+REACH_STEPS = 30  # 1.5 s: a catch is won or lost early (seed 5's start 4: its lowest tip at step 3)
+
+
+def bang_bang_guess(plant, x0, rng, step):
+    """An initial guess for :func:`reach`: the rollout (on ``step``) of 1–4 random full pushes
+    of random sign, each 1–8 control steps, one after another from the start, then zero action."""
+    U = np.zeros(T)
+    t = 0
+    for _ in range(rng.integers(1, 5)):
+        n = int(rng.integers(1, 9))
+        U[t : t + n] = rng.choice([plant.u_lo, plant.u_hi])
+        t += n
+    X = [np.asarray(x0, float)]
+    for u in U:
+        X.append(step(X[-1], u))
+    return np.asarray(X), U
+
+
+class ReachNLP:
+    """IPOPT's highest minimum tip height over the first ``horizon`` steps (:func:`reach`), the
+    rail bound a parameter."""
+
+    def __init__(self, plant, x0, step=None, horizon=REACH_STEPS):
+        ca = plant.ca
+        step = plant.step_sx if step is None else step
+        opti = self.opti = ca.Opti()
+        self.horizon = horizon
+        X, U, s = self.X, self.U, self.s = (opti.variable(6, horizon + 1),
+                                            opti.variable(1, horizon), opti.variable())  # fmt: skip
+        self.rail = opti.parameter()
+        opti.subject_to(X[:, 0] == x0)
+        for t in range(horizon):
+            opti.subject_to(X[:, t + 1] == step(X[:, t], U[t]))
+        opti.subject_to(0.6 * ca.cos(X[1, 1:]) + 0.6 * ca.cos(X[1, 1:] + X[2, 1:]) >= s)
+        opti.subject_to(opti.bounded(-self.rail, X[0, :], self.rail))
+        opti.subject_to(opti.bounded(plant.u_lo, U, plant.u_hi))
+        opti.minimize(-s)
+        # a small first barrier weight, so that a good guess is not pushed far into the interior
+        opti.solver("ipopt", {"print_time": False},
+                    {"max_iter": 300, "print_level": 0, "tol": 1e-7, "mu_init": 1e-4})  # fmt: skip
+
+    def solve(self, rail, X, U):
+        """(the highest minimum tip, X, U) at ``rail`` from the guess (X, U) (cart clipped to
+        the rail), or None where IPOPT fails."""
+        o, h = self.opti, self.horizon
+        X = np.array(X[: h + 1], float)
+        X[:, 0] = np.clip(X[:, 0], -rail, rail)
+        o.set_value(self.rail, rail)
+        o.set_initial(self.X, X.T)
+        o.set_initial(self.U, np.asarray(U, float)[None, :h])
+        o.set_initial(self.s, float(tip(X).min()))
+        try:
+            sol = o.solve()
+        except RuntimeError:
+            return None
+        return (
+            float(sol.value(self.s)),
+            np.asarray(sol.value(self.X)).T,
+            np.asarray(sol.value(self.U)).ravel(),
+        )
+
+
+def reach(plant, x0, rail, n, rng, loose=None):
+    """The highest the tip can be kept over the first :data:`REACH_STEPS` steps with the cart
+    within ``rail``: IPOPT maximises ``s`` subject to the tip at or above ``s`` at each of
+    them and the actions within their range — no cost, no end box, no later step, so a
+    relaxation of the success test, short because the catches are won or lost in the first
+    second. Two ways in, IPOPT being local:
+
+    - along the rail: from ``loose = (bound, X, U)``, a catch at a looser rail bound (what
+      :func:`catch` met), the bound tightened through ``RAIL_PATH`` to ``rail``, each solve
+      warm-started from the last: how the best height falls as the rail shortens;
+    - from ``n`` initial guesses at ``rail``: the straight line to upright, then
+      :func:`bang_bang_guess`'s random pushes.
+
+    A start whose best ``s`` stays below 1 m both ways is one IPOPT found no catch for: evidence,
+    not proof, that no controller within the rail catches it. -> a dict for the row."""
+    nlp = ReachNLP(plant, x0)
+    row, best = {}, None
+    if loose is not None:
+        bound, X, U = loose
+        path = {}
+        for b in dict.fromkeys([bound, *(b for b in RAIL_PATH if rail < b < bound), rail]):
+            found = nlp.solve(b, X, U)
+            if found is None:
+                break
+            height, X, U = found
+            path[str(b)] = round(height, 4)
+        row["reach_along_rail"] = path
+        if str(rail) in path:
+            best = path[str(rail)]
+    line = np.linspace(1.0, 0.0, T + 1)[:, None] * np.asarray(x0)[None]
+    guesses = [(line, np.zeros(T))] + [bang_bang_guess(plant, x0, rng, nlp_step(plant))
+                                       for _ in range(n - 1)]  # fmt: skip
+    heights = [found[0] for found in (nlp.solve(rail, *g) for g in guesses) if found is not None]
+    row.update(reach_guesses=n, reach_converged=len(heights),
+               reach_at_1m=sum(h >= 1.0 for h in heights))  # fmt: skip
+    best = max([h for h in (best,) if h is not None] + heights, default=None)
+    row["reach_best_min_tip"] = None if best is None else round(best, 4)
+    return row
+
+
+def nlp_step(plant):
+    """The symbolic step as a NumPy function of (x, u)."""
+    return lambda x, u: np.asarray(plant.step_sx(x, u)).ravel()
+
+
 def sqp(plant, x0, rail, penalty, on="mujoco", terminal=1.0, iterations=200):
     """Multiple-shooting SQP from the straight line -> (X, U, iterations, largest gap left), on
     C MuJoCo's step (``on="mujoco"``: end stops included, central finite differences) or on the
@@ -404,6 +518,9 @@ def main(argv=None) -> int:
     parser.add_argument("--sqp-on", choices=("mujoco", "symbolic"), default="mujoco")
     parser.add_argument("--rail-penalty", type=float, default=0.0)
     parser.add_argument("--terminal-weight", type=float, default=1.0, help="--sqp's last state")
+    parser.add_argument("--reach", type=int, default=0, metavar="N",
+                        help="for each start also the highest minimum tip height IPOPT finds "
+                             "within --rail from N initial guesses (reach)")  # fmt: skip
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     try:
@@ -442,6 +559,7 @@ def main(argv=None) -> int:
             Xm = plant.track(x0, X, U)
             row.update(caught_in_mujoco=bool(double_success(Xm)),
                        min_tip=round(float(tip(Xm).min()), 4),
+                       min_tip_step=int(np.argmin(tip(Xm))),
                        max_cart=round(float(np.abs(Xm[:, 0]).max()), 4))  # fmt: skip
         row["ipopt_s"] = round(time.perf_counter() - t0, 1)
         if args.stops and not solved and X is not None:
@@ -450,6 +568,12 @@ def main(argv=None) -> int:
             caught = any(level.get("caught_in_mujoco", False) for level in levels)
             row.update(stops=levels, stops_caught_in_mujoco=caught,
                        stops_s=round(time.perf_counter() - t0, 1))  # fmt: skip
+        if args.reach:
+            t0 = time.perf_counter()
+            loose = None if solved or X is None else (met, X, U)
+            rng = np.random.default_rng([s, i])
+            row.update(reach(plant, x0, args.rail, args.reach, rng, loose))
+            row["reach_s"] = round(time.perf_counter() - t0, 1)
         if args.sqp:
             t0 = time.perf_counter()
             Xs, Us, n, gap = sqp(
