@@ -338,9 +338,8 @@ class ReachNLP:
     """IPOPT's highest minimum tip height over the first ``horizon`` steps (:func:`reach`), the
     rail bound a parameter."""
 
-    def __init__(self, plant, x0, step=None, horizon=REACH_STEPS):
-        ca = plant.ca
-        step = plant.step_sx if step is None else step
+    def __init__(self, plant, x0, horizon=REACH_STEPS):
+        ca, step = plant.ca, plant.step_sx
         opti = self.opti = ca.Opti()
         self.horizon = horizon
         X, U, s = self.X, self.U, self.s = (opti.variable(6, horizon + 1),
@@ -408,18 +407,18 @@ def reach(plant, x0, rail, n, rng, loose=None):
         if str(rail) in path:
             best = path[str(rail)]
     line = np.linspace(1.0, 0.0, T + 1)[:, None] * np.asarray(x0)[None]
-    guesses = [(line, np.zeros(T))] + [bang_bang_guess(plant, x0, rng, nlp_step(plant))
-                                       for _ in range(n - 1)]  # fmt: skip
+    step = symbolic_step(plant)
+    guesses = [(line, np.zeros(T))] + [bang_bang_guess(plant, x0, rng, step) for _ in range(n - 1)]
     heights = [found[0] for found in (nlp.solve(rail, *g) for g in guesses) if found is not None]
     row.update(reach_guesses=n, reach_converged=len(heights),
                reach_at_1m=sum(h >= 1.0 for h in heights))  # fmt: skip
-    best = max([h for h in (best,) if h is not None] + heights, default=None)
-    row["reach_best_min_tip"] = None if best is None else round(best, 4)
+    candidates = heights if best is None else [best, *heights]
+    row["reach_best_min_tip"] = round(max(candidates), 4) if candidates else None
     return row
 
 
-def nlp_step(plant):
-    """The symbolic step as a NumPy function of (x, u)."""
+def symbolic_step(plant):
+    """The symbolic model's step as a NumPy function of (x, u)."""
     return lambda x, u: np.asarray(plant.step_sx(x, u)).ravel()
 
 
@@ -432,7 +431,7 @@ def sqp(plant, x0, rail, penalty, on="mujoco", terminal=1.0, iterations=200):
     if on == "mujoco":
         step, jacobians = plant.mj_step, plant.mj_jacobians
     else:
-        step = lambda x, u: np.asarray(plant.step_sx(x, u)).ravel()
+        step = symbolic_step(plant)
         jacobians = lambda x, u: tuple(np.asarray(a) for a in plant.jac(x, u))
     lo, hi = plant.u_lo, plant.u_hi
 
@@ -519,8 +518,9 @@ def main(argv=None) -> int:
     parser.add_argument("--rail-penalty", type=float, default=0.0)
     parser.add_argument("--terminal-weight", type=float, default=1.0, help="--sqp's last state")
     parser.add_argument("--reach", type=int, default=0, metavar="N",
-                        help="for each start also the highest minimum tip height IPOPT finds "
-                             "within --rail from N initial guesses (reach)")  # fmt: skip
+                        help="for each start also the highest lowest tip height IPOPT finds "
+                             "over the first 1.5 s within --rail, along the rail from the "
+                             "loosest catch and from N initial guesses (reach)")  # fmt: skip
     parser.add_argument("--json", type=Path, default=None)
     args = parser.parse_args(argv)
     try:
