@@ -575,8 +575,8 @@ def run_task(name, args) -> dict:
                       f"{int(at20.sum())}/{at20.size} after {at + 1} iterations, "
                       f"{int(fin.sum())}/{fin.size} after {args.gps_iterations}, final cost "
                       f"{cost[:, i, h].mean():.4g} (mean)")  # fmt: skip
-        print(f"   ({seconds:.1f} s after compile for {args.gps_seeds} seeds × 2 starts × "
-              f"{len(settings)} settings, {compile_s:.0f} s compile)")  # fmt: skip
+        print(f"   ({seconds:.1f} s after compile for {args.gps_seeds} seeds × 2 initial "
+              f"controllers × {len(settings)} settings, {compile_s:.0f} s compile)")  # fmt: skip
     return out
 
 
