@@ -565,15 +565,17 @@ def multiple_shooting(
 
     s = lax.while_loop(lambda s: ~s.done, trip, initial(0, 0))
     zero_k = jnp.zeros_like(s.back.k)
-    no_k = jnp.zeros((), dtype)
+    no_step = jnp.zeros((), dtype)  # α = 0: the feedback alone about the nominal (X, U)
+
+    def feedback_rollout(X, U, K):
+        return closed_loop_rollout(step, cost, x0, X, U, K, zero_k, no_step, bounds)
+
     if len(rules) == 1:
-        X, U, J = closed_loop_rollout(step, cost, x0, s.X, s.U, s.back.K, zero_k, no_k, bounds)
+        X, U, J = feedback_rollout(s.X, s.U, s.back.K)
         back, mu, status = s.back, s.mu, s.status
     else:
         # Both attempts' rollouts (the first's only where it ended stuck), the cheaper kept.
-        Xs, Us, Js = jax.vmap(
-            lambda Xn, Un, K: closed_loop_rollout(step, cost, x0, Xn, Un, K, zero_k, no_k, bounds)
-        )(
+        Xs, Us, Js = jax.vmap(feedback_rollout)(
             jnp.stack([s.X, s.kept_X]),
             jnp.stack([s.U, s.kept_U]),
             jnp.stack([s.back.K, s.kept_back.K]),
