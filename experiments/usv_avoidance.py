@@ -178,6 +178,13 @@ def main(argv=None) -> int:
         help="steps trained past the demos' window (UsvTaskConfig.train_extra)",
     )
     parser.add_argument(
+        "--tail",
+        type=int,
+        default=None,
+        help="steps recorded past each demo's window that GCL's monotonic and goal "
+        "regularisers see (UsvTaskConfig.tail; default 0: none)",
+    )
+    parser.add_argument(
         "--margins",
         type=parse_margins,
         default=None,
@@ -242,6 +249,7 @@ def run_variants(args, pool) -> int:
     task_changes = {
         "range_encoding": args.range_encoding,
         "train_extra": args.train_extra,
+        "tail": args.tail,
         "proximity_margins": args.margins,
     }
     task_changes = {k: v for k, v in task_changes.items() if v is not None}

@@ -257,6 +257,41 @@ def test_regulariser_weights_enter_the_objective():
     assert m.lcr > 0 and m.mono >= 0 and m.goal > 0
 
 
+def test_demo_tails_extend_the_monotonic_and_goal_terms_only():
+    """With recorded states past the window, the monotonic regulariser runs over window and tail
+    (state costs at their own steps) and the goal term sits at the tail's last state; the
+    likelihood's terms and lcr are the window's. A tail of the window's last state alone changes
+    nothing."""
+    params = NET.init(jax.random.key(0))
+    demos, samples = random_set(jax.random.key(1), 3), random_set(jax.random.key(2), 4)
+    config = GCLConfig(lcr_weight=2.0, mono_weight=3.0, goal_weight=0.5, mono_slack=0.1)
+    L = 4
+    extra = jax.random.normal(jax.random.key(5), (3, L, dX))
+    tail = jnp.concatenate([demos.X[:, -1:], extra], 1)
+    _, m = gcl_objective(NET, params, demos, samples, config)
+    _, m_tail = gcl_objective(NET, params, demos.replace(tail=tail), samples, config)
+    for name in ("demo_cost", "log_partition", "lcr", "ess"):
+        np.testing.assert_allclose(getattr(m_tail, name), getattr(m, name), rtol=1e-12)
+    s = np.array(
+        [
+            [float(NET.state_cost(params, x, t)) for t, x in enumerate(np.concatenate([X, e]))]
+            for X, e in zip(demos.X, extra, strict=True)
+        ]
+    )
+    mono = np.mean([np.sum(np.maximum(0.0, np.diff(row) - 0.1) ** 2) for row in s])
+    np.testing.assert_allclose(m_tail.mono, mono, rtol=1e-10)
+    goal = np.mean([goal_penalty(NET, params, e[-1], T + L) for e in extra])
+    np.testing.assert_allclose(m_tail.goal, goal, rtol=1e-10)
+    assert abs(m_tail.mono - m.mono) > 1e-6 and abs(m_tail.goal - m.goal) > 1e-6
+    _, m_none = gcl_objective(NET, params, demos.replace(tail=demos.X[:, -1:]), samples, config)
+    for name in ("mono", "goal", "loss"):
+        np.testing.assert_allclose(getattr(m_none, name), getattr(m, name), rtol=1e-12)
+    # A minibatch keeps each demo's own tail.
+    picked = minibatch(jax.random.key(6), demos.replace(tail=tail), 2)
+    for X, tl in zip(picked.X, picked.tail, strict=True):
+        np.testing.assert_array_equal(tl[0], X[-1])
+
+
 def test_goal_penalty_matches_finite_differences_in_normalised_coordinates():
     """‖∂s/∂z‖² at the final state, against central differences of s(mean + std·z) in z."""
     net = CostNetwork(CostNetworkConfig(hidden=()), dX=4, dU=2, param_dtype=jnp.float64)
@@ -270,13 +305,13 @@ def test_goal_penalty_matches_finite_differences_in_normalised_coordinates():
     z_T = (X[-1] - norm.mean) / std
     h = 1e-6
     fd = np.array([(s(z_T + h * e) - s(z_T - h * e)) / (2 * h) for e in np.eye(4)])
-    np.testing.assert_allclose(goal_penalty(net, params, X), np.sum(fd**2), rtol=1e-6)
+    np.testing.assert_allclose(goal_penalty(net, params, X[-1], 5), np.sum(fd**2), rtol=1e-6)
     # Zero at a stationary point of the state cost: move the final state to the minimiser of
     # this quadratic (least squares of the affine residual in x).
     r0 = net.state_residual(params, jnp.zeros(4), 5)
     J = jax.jacfwd(lambda x: net.state_residual(params, x, 5))(jnp.zeros(4))
     x_star = -np.linalg.lstsq(np.asarray(J), np.asarray(r0), rcond=None)[0]
-    assert goal_penalty(net, params, X.at[-1].set(x_star)) < 1e-12
+    assert goal_penalty(net, params, x_star, 5) < 1e-12
 
 
 @pytest.mark.parametrize("demos_in_partition", [True, False])

@@ -200,6 +200,32 @@ def test_pass_windows_centre_the_closest_approach():
     assert short.num_episodes < 3
 
 
+def test_pass_tails_continue_each_window_and_pad_with_the_last_recorded_state():
+    import dataclasses
+
+    from diffgcl.data.task_frame import closest_approach, pass_tails, pass_windows, to_task_frame
+
+    task = to_task_frame(world_demos(T=40))
+    k = [closest_approach(task.X[i], task.mask[i]) for i in range(3)]
+    before, after = min(k), 40 - max(k) - 6  # every episode recorded 6 or more steps past
+    mask = task.mask.copy()
+    end = k[1] + after + 3  # episode 1 ends 3 steps past its window
+    mask[1, end + 1 :] = 0.0
+    task = dataclasses.replace(task, mask=mask)
+    win = pass_windows(task, before, after)
+    tails = pass_tails(task, before, after, 5)
+    assert tails.shape == (3, 6, hull_sim.DX)
+    for i in range(3):
+        np.testing.assert_array_equal(tails[i, 0], win.X[i, -1])
+        b = k[i] + after
+        n = min(5, win.episodes[i]["recorded_after"])
+        np.testing.assert_array_equal(tails[i, : n + 1], task.X[i, b : b + n + 1])
+        np.testing.assert_array_equal(
+            tails[i, n + 1 :], np.broadcast_to(task.X[i, b + n], (5 - n, hull_sim.DX))
+        )
+    assert win.episodes[1]["recorded_after"] == 3
+
+
 def test_network_on_task_features_is_the_network_on_the_features():
     """A cost network with a feature map equals the plain network applied to φ(x); its goal
     regulariser differentiates through the normaliser the same way."""
@@ -224,7 +250,9 @@ def test_network_on_task_features_is_the_network_on_the_features():
     std = jnp.maximum(jnp.sqrt(norm.var), config.std_floor)
     grad = jax.grad(lambda f: bare.state_cost(params, f, 4))(phi(traj[-1]))
     np.testing.assert_allclose(
-        float(goal_penalty(net, params, traj)), float(jnp.sum((grad * std) ** 2)), rtol=1e-12
+        float(goal_penalty(net, params, traj[-1], 4)),
+        float(jnp.sum((grad * std) ** 2)),
+        rtol=1e-12,
     )
 
 

@@ -1,6 +1,7 @@
 """The USV pipeline (diffgcl.usv): bags' demos into the task's layout, the scores of
 held-out rollouts against hand-built tracks, and (slow) the whole run on a few tiny bags."""
 
+import dataclasses
 import json
 import warnings
 
@@ -285,7 +286,15 @@ def test_bag_demos_in_the_task_layout(tiny_bags):
     np.testing.assert_array_equal(
         np.asarray(batch.controller.K[0]), np.asarray(batch.controller.K[1])
     )
-    assert batch.dynamics is None
+    assert batch.dynamics is None and batch.tail is None
+    # The recordings past the windows: GCL's tails, from each window's last state on.
+    tails = U.task_tails(demos, dataclasses.replace(task, tail=12))
+    assert tails.shape == (2, 13, hull_sim.DX)
+    np.testing.assert_array_equal(tails[:, 0], windows.X[:, -1])
+    with_tail = U.demo_batch_pooled(task_demos, tail=U.window_states(tails, radii))
+    assert with_tail.tail.shape == (2, 1, 13, env.dX)
+    np.testing.assert_allclose(np.asarray(with_tail.tail[:, 0, 0]), task_demos.X[:, -1])
+    assert U.task_tails(demos, task) is None
     # With the env: the hull linearised about each demo (the temperature calibration's input);
     # B maps a normalised action to the state as the env's own step does (finite differences).
     dyn = U.demo_batch_pooled(task_demos, env=env).dynamics
@@ -347,7 +356,7 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
         ],
     )
     config = U.UsvRunConfig(
-        task=U.UsvTaskConfig(before=60, after=100, train_extra=20),
+        task=U.UsvTaskConfig(before=60, after=100, train_extra=20, tail=10),
         rgcl=rgcl,
         heldout=4,
         expert_iterations=2,
@@ -426,6 +435,7 @@ def test_cli_fast_is_the_experiments_fast_and_options_override_it():
     )
     assert custom.rgcl.iterations == 3 and custom.rgcl.freeze_last == 2
     assert (custom.heldout, custom.retrain_warned, custom.task.before) == (8, 1, 100)
+    assert full.task.tail == 0 and run_config(parse(["usv", "--tail", "90"])).task.tail == 90
 
 
 def test_margins_for_clearance_by_hand():

@@ -232,12 +232,15 @@ class DemoBatch:
     the demos' own fitted linear-Gaussian controller per condition (fields [C, T, ...]), a
     component of the fusion mixture (:func:`diffgcl.costs.demo_controller.fit_demo_controller`);
     dynamics: the env's dynamics linearised about the demos (fields [C, T, ...]; None when built
-    without the env), for the temperature calibration."""
+    without the env), for the temperature calibration; tail: None or [C, N, L+1, dX], each demo's
+    recorded states from the window's last on, padded with its last recorded state, which GCL's
+    monotonic and goal regularisers run on over (:mod:`diffgcl.costs.gcl`)."""
 
     X: Array
     U: Array
     controller: LinearGaussianController
     dynamics: LinearDynamics | None = None
+    tail: Array | None = None
 
 
 @struct.dataclass
@@ -522,11 +525,12 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         samples: GPSSamples | None = None,
         sample_ctrl: LinearGaussianController | None = None,
     ) -> tuple[WeightedSamples, WeightedSamples]:
-        """(samples [C, S], demos [C, N]) with their log proposal densities."""
+        """(samples [C, S], demos [C, N]) with their log proposal densities (and the demos'
+        tails)."""
         if config.sample_source == "model" and samples is not None:
             sample_ctrl, _, _ = window(demos, sample_ctrl)
             dynamics, _, _ = window(demos, samples.dynamics)
-            return jax.vmap(model_weighted_samples, in_axes=(0, 0, 0, 0, 0, 0, None))(
+            samples_w, demos_w = jax.vmap(model_weighted_samples, in_axes=(0, 0, 0, 0, 0, 0, None))(
                 jax.random.split(key, C),
                 dynamics,
                 sample_ctrl,
@@ -535,9 +539,11 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
                 demos.U,
                 config.model_samples,
             )
-        return jax.vmap(fusion_weighted_samples, in_axes=(0, 0, 0, 0, None))(
-            buffer, demos.controller, demos.X, demos.U, gcl_cfg
-        )
+        else:
+            samples_w, demos_w = jax.vmap(fusion_weighted_samples, in_axes=(0, 0, 0, 0, None))(
+                buffer, demos.controller, demos.X, demos.U, gcl_cfg
+            )
+        return samples_w, demos_w.replace(tail=demos.tail)
 
     def optimise(cost: CostState, key: PRNGKey, demos_w, samples_w, n_steps, max_steps=None):
         """``n_steps`` minibatch Adam steps (``n_steps`` may be traced, up to ``max_steps``);

@@ -3,7 +3,7 @@ printing; the pipeline is :func:`diffgcl.usv.run_usv`, the pictures
 :func:`diffgcl.viz.usv.save_usv_plots`).
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
-                [--range-encoding saturated|metres] [--train-extra 150]
+                [--range-encoding saturated|metres] [--train-extra 150] [--tail 0]
                 [--margins 5,10,15,20] [--seeds 1] [--retrain 1]
                 [--heldout 256] [--fast]
                 [--set a.b=value] [--out runs/usv]
@@ -51,6 +51,8 @@ def run_config(args):
     task = base.task
     if args.train_extra is not None:
         task = dataclasses.replace(task, train_extra=args.train_extra)
+    if args.tail is not None:
+        task = dataclasses.replace(task, tail=args.tail)
     if args.margins is not None:
         task = dataclasses.replace(task, proximity_margins=args.margins)
     methods = tuple(m for m in args.methods.split(",") if m)
@@ -106,6 +108,13 @@ def register(subparsers) -> None:
         type=int,
         default=None,
         help="steps trained past the demos' window (default 150, with --fast 40)",
+    )
+    p.add_argument(
+        "--tail",
+        type=int,
+        default=None,
+        help="steps recorded past each demo's window that GCL's monotonic and goal "
+        "regularisers see (default 0: none)",
     )
     p.add_argument(
         "--margins",

@@ -44,6 +44,13 @@ make every sequence jagged and the penalty would fight ``w_u`` rather than shape
   gradient there, and a demonstrator that overshoots (the arm's GPS expert does, by 0.14 rad)
   drags the minimum into the overshoot.
 
+Demo tails (``WeightedSamples.tail``, off when None): where a demo was recorded past the window
+that GCL compares with the samples, the monotonic regulariser runs on over those states and the
+goal term sits at the last recorded one. The likelihood still sees the window alone (the samples
+have no tail to compare with); the tail only says where the demonstrator went next. A window cut
+mid-manoeuvre (the USV's end mid-return to the course line) thus still gets a cost that falls
+towards where the recording ends, and a stationary point there rather than mid-manoeuvre.
+
 Without importance weights (``GCLConfig.importance_weights = False``) the samples are taken as
 draws from the current cost's own MaxEnt distribution ``p_φ(τ) ∝ exp(−c_φ(τ))`` — the LQR
 controllers optimised for the cost are its Laplace approximation — so every sample weighs the
@@ -162,13 +169,17 @@ class GCLConfig:
 class WeightedSamples:
     """Trajectories with their log proposal densities (one condition).
 
-    X: [S, T+1, dX], U: [S, T, dU], log_q: [S] (``log q(τ)``, so ``log z = −log_q``), valid: [S].
+    X: [S, T+1, dX], U: [S, T, dU], log_q: [S] (``log q(τ)``, so ``log z = −log_q``), valid: [S];
+    tail: demos only, None or [S, L+1, dX]: each demo's recorded states from its last one in
+    ``X`` on (``tail[:, 0] == X[:, -1]``), padded with its last recorded state; the monotonic
+    and goal regularisers run over ``X`` and the tail (module docstring).
     """
 
     X: Array
     U: Array
     log_q: Array
     valid: Array
+    tail: Array | None = None
 
 
 @struct.dataclass
@@ -210,15 +221,14 @@ def mono_penalty(s: Array, slack: float) -> Array:
     return jnp.sum(jnp.maximum(0.0, s[1:] - s[:-1] - slack) ** 2)
 
 
-def goal_penalty(network: CostNetwork, params: CostParams, X: Array) -> Array:
-    """``‖∂s/∂z‖²`` at the final state ``X[-1]`` of one trajectory ``X: [T+1, dX]``, with ``s`` the
-    state cost and ``z`` the normalised state (or the normalised features with a feature map):
-    the chain rule through the normaliser's scale, ``∂s/∂z = ∂s/∂φ · std``."""
-    T = X.shape[0] - 1
+def goal_penalty(network: CostNetwork, params: CostParams, x: Array, t: Array | int) -> Array:
+    """``‖∂s/∂z‖²`` at a demo's final state ``x: [dX]`` (step ``t``), with ``s`` the state cost
+    and ``z`` the normalised state (or the normalised features with a feature map): the chain
+    rule through the normaliser's scale, ``∂s/∂z = ∂s/∂φ · std``."""
     norm = jax.lax.stop_gradient(params.norm)
     std = jnp.maximum(jnp.sqrt(norm.var), network.config.std_floor)
-    f = network.state_input(X[-1])
-    grad = jax.grad(lambda f: network.state_cost_of_input(params, f, T))(f)
+    f = network.state_input(x)
+    grad = jax.grad(lambda f: network.state_cost_of_input(params, f, t))(f)
     return jnp.sum((grad * std) ** 2)
 
 
@@ -332,9 +342,19 @@ def gcl_objective(
 
     lcr_all = jnp.concatenate([jax.vmap(lcr_penalty)(s_samp), jax.vmap(lcr_penalty)(s_demo)])
     lcr = _masked_mean(lcr_all, jnp.concatenate([samples.valid, demos.valid]))
-    mono_all = jax.vmap(mono_penalty, in_axes=(0, None))(s_demo, config.mono_slack)
+    T = demos.U.shape[-2]
+    if demos.tail is None:
+        s_mono, x_end, t_end = s_demo, demos.X[:, -1], T
+    else:
+        L = demos.tail.shape[-2] - 1
+        state_costs = jax.vmap(network.state_cost, in_axes=(None, 0, 0))
+        s_tail = jax.vmap(state_costs, in_axes=(None, 0, None))(
+            params, demos.tail[:, 1:], T + 1 + jnp.arange(L)
+        )
+        s_mono, x_end, t_end = jnp.concatenate([s_demo, s_tail], 1), demos.tail[:, -1], T + L
+    mono_all = jax.vmap(mono_penalty, in_axes=(0, None))(s_mono, config.mono_slack)
     mono = _masked_mean(mono_all, demos.valid)
-    goal_all = jax.vmap(goal_penalty, in_axes=(None, None, 0))(network, params, demos.X)
+    goal_all = jax.vmap(goal_penalty, in_axes=(None, None, 0, None))(network, params, x_end, t_end)
     goal = _masked_mean(goal_all, demos.valid)
 
     loss = (

@@ -100,32 +100,69 @@ def closest_approach(X: np.ndarray, mask: np.ndarray) -> int:
     return int(np.argmin(np.where(mask > 0, d, np.inf)))
 
 
+def _window_starts(demos: DemoSet, before: int, after: int, warn: bool) -> list[tuple[int, int]]:
+    """(episode, first step) of every episode with a full valid window (see
+    :func:`pass_windows`), warning about the others when ``warn``."""
+    keep = []
+    for i in range(demos.num_episodes):
+        k = closest_approach(demos.X[i], demos.mask[i])
+        a, b = k - before, k + after
+        if a < 0 or b >= demos.X.shape[1] or not np.all(demos.mask[i, a : b + 1] > 0):
+            if warn:
+                meta = demos.episodes[i] if demos.episodes else {}
+                name = meta.get("source", f"episode {i}")
+                warnings.warn(
+                    f"{name}: episode {meta.get('episode', i)} has no valid window of {before} "
+                    f"steps before and {after} after its closest approach (step {k}); left out",
+                    stacklevel=3,
+                )
+            continue
+        keep.append((i, a))
+    return keep
+
+
 def pass_windows(demos: DemoSet, before: int, after: int) -> DemoSet:
     """Each episode cropped to ``before`` steps before and ``after`` steps after its closest
     approach to the pole (horizon ``before + after``), keeping only windows whose every step is
     valid. Episodes that are too short on either side are left out with a warning naming them;
-    the metadata records ``window = [first, last]`` (steps of the episode)."""
-    keep, metas = [], []
-    T = before + after
-    for i in range(demos.num_episodes):
-        k = closest_approach(demos.X[i], demos.mask[i])
-        a, b = k - before, k + after
-        meta = dict(demos.episodes[i]) if demos.episodes else {}
-        name = meta.get("source", f"episode {i}")
-        if a < 0 or b >= demos.X.shape[1] or not np.all(demos.mask[i, a : b + 1] > 0):
-            warnings.warn(
-                f"{name}: episode {meta.get('episode', i)} has no valid window of {before} steps "
-                f"before and {after} after its closest approach (step {k}); left out",
-                stacklevel=2,
-            )
-            continue
-        keep.append((i, a))
-        meta["window"] = [int(a), int(b)]
-        metas.append(meta)
+    the metadata records ``window = [first, last]`` (steps of the episode) and ``recorded_after``,
+    the valid steps recorded past the window's last."""
+    keep = _window_starts(demos, before, after, warn=True)
     if not keep:
         raise DemoError(f"pass windows: no episode has {before} + {after} valid steps")
+    T = before + after
+    metas = []
+    for i, a in keep:
+        meta = dict(demos.episodes[i]) if demos.episodes else {}
+        meta["window"] = [int(a), int(a + T)]
+        meta["recorded_after"] = int(_last_valid(demos.mask[i]) - (a + T))
+        metas.append(meta)
     X = np.stack([demos.X[i, a : a + T + 1] for i, a in keep])
     U = np.stack([demos.U[i, a : a + T] for i, a in keep])
     O = np.stack([demos.O[i, a : a + T + 1] for i, a in keep])
     mask = np.stack([demos.mask[i, a : a + T + 1] for i, a in keep])
     return DemoSet(X=X, U=U, O=O, mask=mask, dt=demos.dt, env=demos.env, episodes=tuple(metas))
+
+
+def _last_valid(mask: np.ndarray) -> int:
+    """The last valid step of one episode's mask (the window's steps are all valid)."""
+    return int(np.flatnonzero(mask > 0)[-1])
+
+
+def pass_tails(demos: DemoSet, before: int, after: int, length: int) -> np.ndarray:
+    """The states recorded past each of :func:`pass_windows`' windows (same episodes, same
+    order): ``[N, length+1, dX]`` from the window's last state on, up to ``length`` steps,
+    padded with the episode's last recorded state where it ends sooner. A gap in the recording
+    ends the tail at the last valid step before it."""
+    if length < 0:
+        raise ValueError(f"pass tails: length {length} must be >= 0")
+    T = before + after
+    tails = []
+    for i, a in _window_starts(demos, before, after, warn=False):
+        b = a + T
+        valid = demos.mask[i, b : b + length + 1] > 0
+        n = int(np.argmin(valid)) if not valid.all() else valid.size  # valid steps from b on
+        tail = demos.X[i, b : b + n]
+        pad = np.broadcast_to(tail[-1], (length + 1 - n, tail.shape[-1]))
+        tails.append(np.concatenate([tail, pad]))
+    return np.stack(tails)

@@ -29,8 +29,10 @@ from diffgcl.usv.task import (
     demo_batch_pooled,
     make_task_env,
     task_margins,
+    task_tails,
     task_windows,
     usv_demo_set,
+    window_states,
 )
 
 METHODS = ("rgcl", "expert", "bc")
@@ -281,7 +283,14 @@ def run_usv(
     train_env = make_task_env(windows, radii, params, task, horizon=task.training_horizon)
     task_demos = usv_demo_set(env, windows, radii)
     needs_dynamics = rgcl_config.temperature != "likelihood" and "rgcl" in config.methods
-    batch = demo_batch_pooled(task_demos, env=env if needs_dynamics else None)
+    tails = task_tails(demos, task)
+    if tails is not None:
+        summary["demo_tail"] = task.tail
+    batch = demo_batch_pooled(
+        task_demos,
+        env=env if needs_dynamics else None,
+        tail=None if tails is None else window_states(tails, radii),
+    )
     ranges = SituationRanges.of(task_demos, radius=(float(radii.min()), float(radii.max())))
     probe = make_task_env(windows, radii, truth, task, horizon=task.horizon + config.eval_extra)
     x0_heldout = np.asarray(

@@ -51,7 +51,10 @@ class UsvTaskConfig:
     margin, boats passed at 1.25–1.35× the demos' clearance (17 m on the built-in bags), with
     20 m at about 1.1×; but with 20 m about one training seed in five passed too close and hit
     the pole, unless it was trained again
-    (:attr:`diffgcl.usv.pipeline.UsvRunConfig.retrain_warned`; docs/decisions.md).
+    (:attr:`diffgcl.usv.pipeline.UsvRunConfig.retrain_warned`; docs/decisions.md);
+    tail: up to this many steps recorded past each window given to GCL's monotonic and goal
+    regularisers (:func:`task_tails`; 0: none): the windows end mid-return to the course line,
+    and the recordings go on until the boat is back near it.
     """
 
     before: int = 120
@@ -63,6 +66,7 @@ class UsvTaskConfig:
     default_pole_radius: float = DEFAULT_POLE_RADIUS
     train_extra: int = 150
     proximity_margins: tuple[float, ...] | None = None
+    tail: int = 0
 
     @property
     def horizon(self) -> int:
@@ -87,6 +91,22 @@ def task_windows(demos: DemoSet, config: UsvTaskConfig) -> DemoSet:
     if config.max_conditions is not None:
         windows = windows.subset(slice(0, config.max_conditions))
     return windows
+
+
+def task_tails(demos: DemoSet, config: UsvTaskConfig) -> np.ndarray | None:
+    """The hull states recorded past each of :func:`task_windows`' windows, in the task frame:
+    ``[N, config.tail + 1, DX]`` from the window's last state on, padded with the episode's last
+    recorded state (:func:`diffgcl.data.task_frame.pass_tails`); None when ``config.tail`` is 0."""
+    from diffgcl.data.task_frame import pass_tails, to_task_frame
+
+    if config.tail == 0:
+        return None
+    keep = [i for i, e in enumerate(demos.episodes) if str(e.get("set")) in config.sets]
+    chosen = to_task_frame(demos.subset(np.asarray(keep)))
+    tails = pass_tails(chosen, config.before, config.after, config.tail)
+    if config.max_conditions is not None:
+        tails = tails[: config.max_conditions]
+    return tails
 
 
 def cruise_speed_of(windows: DemoSet) -> float:
@@ -174,11 +194,13 @@ def usv_observations(env: UsvEnv, X: np.ndarray, O_hull: np.ndarray) -> np.ndarr
     return np.concatenate([ranges, heading, nu, cross], axis=-1)
 
 
-def window_states(windows: DemoSet, radii: np.ndarray) -> np.ndarray:
-    """The windows' hull states with each pole's radius appended: [N, T+1, 11]."""
-    N, T1, _ = windows.X.shape
+def window_states(windows: DemoSet | np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """The windows' hull states (or hull states ``[N, T', DX]``, such as :func:`task_tails`)
+    with each pole's radius appended: [N, T', 11]."""
+    X = windows.X if isinstance(windows, DemoSet) else windows
+    N, T1, _ = X.shape
     return np.concatenate(
-        [windows.X[..., : hull_sim.DX], np.broadcast_to(radii[:, None, None], (N, T1, 1))], -1
+        [X[..., : hull_sim.DX], np.broadcast_to(radii[:, None, None], (N, T1, 1))], -1
     )
 
 
@@ -197,10 +219,13 @@ def usv_demo_set(env: UsvEnv, windows: DemoSet, radii: np.ndarray) -> DemoSet:
     return DemoSet(X=X, U=U, O=O, mask=windows.mask, dt=windows.dt, env="usv", episodes=episodes)
 
 
-def demo_batch_pooled(demos: DemoSet, dtype=None, env: UsvEnv | None = None) -> DemoBatch:
+def demo_batch_pooled(
+    demos: DemoSet, dtype=None, env: UsvEnv | None = None, tail: np.ndarray | None = None
+) -> DemoBatch:
     """A :class:`~diffgcl.algorithms.rgcl.DemoBatch` with one demo per condition [C, 1, ...] and
     the demonstrators' controller fitted on all demos pooled, shared by every condition; given
-    the ``env``, its dynamics linearised about each demo (for ``temperature='demos'``)."""
+    the ``env``, its dynamics linearised about each demo (for ``temperature='demos'``); ``tail``:
+    each demo's states past the window in the env's layout ``[C, L+1, dX]``, or None."""
     from diffgcl.costs.demo_controller import fit_demo_controller
 
     dtype = dtype or jnp.zeros(()).dtype
@@ -214,4 +239,10 @@ def demo_batch_pooled(demos: DemoSet, dtype=None, env: UsvEnv | None = None) -> 
         from diffgcl.algorithms.rgcl import demo_dynamics
 
         dynamics = demo_dynamics(env, X[:, None], U[:, None])
-    return DemoBatch(X=X[:, None], U=U[:, None], controller=controller, dynamics=dynamics)
+    if tail is not None:
+        if tail.shape[0] != C or tail.shape[-1] != X.shape[-1]:
+            raise ValueError(f"demo tails {tail.shape} do not match demos X{tuple(X.shape)}")
+        tail = jnp.asarray(tail, dtype)[:, None]
+    return DemoBatch(
+        X=X[:, None], U=U[:, None], controller=controller, dynamics=dynamics, tail=tail
+    )
