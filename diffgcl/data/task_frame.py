@@ -126,7 +126,7 @@ def pass_windows(demos: DemoSet, before: int, after: int) -> DemoSet:
     approach to the pole (horizon ``before + after``), keeping only windows whose every step is
     valid. Episodes that are too short on either side are left out with a warning naming them;
     the metadata records ``window = [first, last]`` (steps of the episode) and ``recorded_after``,
-    the valid steps recorded past the window's last."""
+    the steps recorded past the window's last before the recording ends or has a gap."""
     keep = _window_starts(demos, before, after, warn=True)
     if not keep:
         raise DemoError(f"pass windows: no episode has {before} + {after} valid steps")
@@ -135,7 +135,7 @@ def pass_windows(demos: DemoSet, before: int, after: int) -> DemoSet:
     for i, a in keep:
         meta = dict(demos.episodes[i]) if demos.episodes else {}
         meta["window"] = [int(a), int(a + T)]
-        meta["recorded_after"] = int(_last_valid(demos.mask[i]) - (a + T))
+        meta["recorded_after"] = _valid_steps_from(demos.mask[i], a + T) - 1
         metas.append(meta)
     X = np.stack([demos.X[i, a : a + T + 1] for i, a in keep])
     U = np.stack([demos.U[i, a : a + T] for i, a in keep])
@@ -144,9 +144,11 @@ def pass_windows(demos: DemoSet, before: int, after: int) -> DemoSet:
     return DemoSet(X=X, U=U, O=O, mask=mask, dt=demos.dt, env=demos.env, episodes=tuple(metas))
 
 
-def _last_valid(mask: np.ndarray) -> int:
-    """The last valid step of one episode's mask (the window's steps are all valid)."""
-    return int(np.flatnonzero(mask > 0)[-1])
+def _valid_steps_from(mask: np.ndarray, step: int, at_most: int | None = None) -> int:
+    """How many steps of one episode's ``mask`` are valid in a row from ``step`` on (``step``
+    itself valid), up to ``at_most``."""
+    valid = mask[step:] > 0 if at_most is None else mask[step : step + at_most] > 0
+    return int(np.argmin(valid)) if not valid.all() else int(valid.size)
 
 
 def pass_tails(demos: DemoSet, before: int, after: int, length: int) -> np.ndarray:
@@ -160,8 +162,7 @@ def pass_tails(demos: DemoSet, before: int, after: int, length: int) -> np.ndarr
     tails = []
     for i, a in _window_starts(demos, before, after, warn=False):
         b = a + T
-        valid = demos.mask[i, b : b + length + 1] > 0
-        n = int(np.argmin(valid)) if not valid.all() else valid.size  # valid steps from b on
+        n = _valid_steps_from(demos.mask[i], b, length + 1)
         tail = demos.X[i, b : b + n]
         pad = np.broadcast_to(tail[-1], (length + 1 - n, tail.shape[-1]))
         tails.append(np.concatenate([tail, pad]))
