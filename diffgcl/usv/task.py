@@ -77,17 +77,23 @@ class UsvTaskConfig:
         return self.horizon + self.train_extra
 
 
-def task_windows(demos: DemoSet, config: UsvTaskConfig) -> DemoSet:
-    """The chosen sets' episodes in the task frame, cropped around the pole pass (module
-    docstring); episodes without a full window are left out with a warning."""
-    from diffgcl.data.task_frame import pass_windows, to_task_frame
+def _chosen_in_task_frame(demos: DemoSet, config: UsvTaskConfig) -> DemoSet:
+    """The episodes of ``config.sets``, each in its task frame."""
+    from diffgcl.data.task_frame import to_task_frame
 
     sets = {str(e.get("set")) for e in demos.episodes}
     keep = [i for i, e in enumerate(demos.episodes) if str(e.get("set")) in config.sets]
     if not keep:
         raise DemoError(f"demos: no episode of sets {config.sets} (the data have sets {sets})")
-    chosen = to_task_frame(demos.subset(np.asarray(keep)))
-    windows = pass_windows(chosen, config.before, config.after)
+    return to_task_frame(demos.subset(np.asarray(keep)))
+
+
+def task_windows(demos: DemoSet, config: UsvTaskConfig) -> DemoSet:
+    """The chosen sets' episodes in the task frame, cropped around the pole pass (module
+    docstring); episodes without a full window are left out with a warning."""
+    from diffgcl.data.task_frame import pass_windows
+
+    windows = pass_windows(_chosen_in_task_frame(demos, config), config.before, config.after)
     if config.max_conditions is not None:
         windows = windows.subset(slice(0, config.max_conditions))
     return windows
@@ -97,12 +103,11 @@ def task_tails(demos: DemoSet, config: UsvTaskConfig) -> np.ndarray | None:
     """The hull states recorded past each of :func:`task_windows`' windows, in the task frame:
     ``[N, config.tail + 1, DX]`` from the window's last state on, padded with the episode's last
     recorded state (:func:`diffgcl.data.task_frame.pass_tails`); None when ``config.tail`` is 0."""
-    from diffgcl.data.task_frame import pass_tails, to_task_frame
+    from diffgcl.data.task_frame import pass_tails
 
     if config.tail == 0:
         return None
-    keep = [i for i, e in enumerate(demos.episodes) if str(e.get("set")) in config.sets]
-    chosen = to_task_frame(demos.subset(np.asarray(keep)))
+    chosen = _chosen_in_task_frame(demos, config)
     tails = pass_tails(chosen, config.before, config.after, config.tail)
     if config.max_conditions is not None:
         tails = tails[: config.max_conditions]
