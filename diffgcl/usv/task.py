@@ -143,7 +143,7 @@ def margins_for_clearance(clearance_m: float, margins=PROXIMITY_MARGINS) -> tupl
 
 def demo_clearance_median(env: UsvEnv, windows: DemoSet, radii: np.ndarray) -> float:
     """The demos' median minimum clearance (m) to their poles, in ``env``'s hull outline."""
-    X = window_states(windows, radii)
+    X = window_states(windows.X, radii)
     return float(np.median(trajectory_metrics(env, X)["min_clearance"]))
 
 
@@ -199,10 +199,9 @@ def usv_observations(env: UsvEnv, X: np.ndarray, O_hull: np.ndarray) -> np.ndarr
     return np.concatenate([ranges, heading, nu, cross], axis=-1)
 
 
-def window_states(windows: DemoSet | np.ndarray, radii: np.ndarray) -> np.ndarray:
-    """The windows' hull states (or hull states ``[N, T', DX]``, such as :func:`task_tails`)
-    with each pole's radius appended: [N, T', 11]."""
-    X = windows.X if isinstance(windows, DemoSet) else windows
+def window_states(X: np.ndarray, radii: np.ndarray) -> np.ndarray:
+    """Hull states ``X: [N, T', DX]`` (a window's, or :func:`task_tails`') with each pole's
+    radius appended: [N, T', 11]."""
     N, T1, _ = X.shape
     return np.concatenate(
         [X[..., : hull_sim.DX], np.broadcast_to(radii[:, None, None], (N, T1, 1))], -1
@@ -213,7 +212,7 @@ def usv_demo_set(env: UsvEnv, windows: DemoSet, radii: np.ndarray) -> DemoSet:
     """The windows in ``env``'s layout: states with the pole radius [N, T+1, 11], normalised
     actions [N, T, 2], the policy's observations [N, T+1, dO] from the recorded ranges, and each
     episode its own condition (``condition = i``)."""
-    X = window_states(windows, radii)
+    X = window_states(windows.X, radii)
     offset, scale = np.asarray(env.action_offset), np.asarray(env.action_scale)
     U = (windows.U - offset) / scale
     O = usv_observations(env, X, windows.O)
