@@ -261,7 +261,7 @@ def test_demo_tails_extend_the_monotonic_and_goal_terms_only():
     """With recorded states past the window, the monotonic regulariser runs over window and tail
     (state costs at their own steps) and the goal term sits at the tail's last state; the
     likelihood's terms and lcr are the window's. A tail of the window's last state alone changes
-    nothing."""
+    nothing, and neither does any tail without those two terms."""
     params = NET.init(jax.random.key(0))
     demos, samples = random_set(jax.random.key(1), 3), random_set(jax.random.key(2), 4)
     config = GCLConfig(lcr_weight=2.0, mono_weight=3.0, goal_weight=0.5, mono_slack=0.1)
@@ -286,6 +286,21 @@ def test_demo_tails_extend_the_monotonic_and_goal_terms_only():
     _, m_none = gcl_objective(NET, params, demos.replace(tail=demos.X[:, -1:]), samples, config)
     for name in ("mono", "goal", "loss"):
         np.testing.assert_allclose(getattr(m_none, name), getattr(m, name), rtol=1e-12)
+    # Without the monotonic and goal terms the objective and its gradient ignore the tail, as
+    # GCLConfig.reads_tails says (the USV pipeline then loads none).
+    assert config.reads_tails and GCLConfig(goal_weight=0.5).reads_tails
+    plain = GCLConfig(lcr_weight=2.0)
+    assert not plain.reads_tails
+
+    def loss_and_grad(d):
+        return jax.value_and_grad(lambda p: gcl_objective(NET, p, d, samples, plain)[0])(params)
+
+    for got, want in zip(
+        jax.tree.leaves(loss_and_grad(demos.replace(tail=tail))),
+        jax.tree.leaves(loss_and_grad(demos)),
+        strict=True,
+    ):
+        np.testing.assert_allclose(got, want, rtol=1e-12, atol=0)
     # A minibatch keeps each demo's own tail.
     picked = minibatch(jax.random.key(6), demos.replace(tail=tail), 2)
     for X, tl in zip(picked.X, picked.tail, strict=True):

@@ -294,7 +294,7 @@ def test_bag_demos_in_the_task_layout(tiny_bags):
     with_tail = U.demo_batch_pooled(task_demos, tail=U.window_states(tails, radii))
     assert with_tail.tail.shape == (2, 1, 13, env.dX)
     np.testing.assert_allclose(np.asarray(with_tail.tail[:, 0, 0]), task_demos.X[:, -1])
-    assert U.task_tails(demos, task) is None
+    assert U.task_tails(demos, dataclasses.replace(task, tail=0)) is None
     # With the env: the hull linearised about each demo (the temperature calibration's input);
     # B maps a normalised action to the state as the env's own step does (finite differences).
     dyn = U.demo_batch_pooled(task_demos, env=env).dynamics
@@ -353,6 +353,7 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
             "gcl.pretrain_steps=20",
             "gcl.n_steps=5",
             "policy.s_step.n_steps=20",
+            "gcl.mono_weight=1",  # a regulariser that reads the demos' tails
         ],
     )
     config = U.UsvRunConfig(
@@ -371,6 +372,7 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
         T_eval = config.task.horizon + config.eval_extra  # judged past the window
         assert run.tracks[name].shape == (1, 4, T_eval + 1, run.env.dX)
     assert run.summary["hull_identification"]["max_relative_error"] < 0.5
+    assert run.summary["demo_tail"] == 10
     # One training seed, trained again at most once (retrain_warned=1) if it warned;
     # the summary's warning is the kept attempt's.
     record = run.summary["rgcl"]["attempts"]["0"]
@@ -435,7 +437,7 @@ def test_cli_fast_is_the_experiments_fast_and_options_override_it():
     )
     assert custom.rgcl.iterations == 3 and custom.rgcl.freeze_last == 2
     assert (custom.heldout, custom.retrain_warned, custom.task.before) == (8, 1, 100)
-    assert full.task.tail == 0 and run_config(parse(["usv", "--tail", "90"])).task.tail == 90
+    assert full.task.tail == 110 and run_config(parse(["usv", "--tail", "90"])).task.tail == 90
 
 
 def test_margins_for_clearance_by_hand():

@@ -164,6 +164,12 @@ class GCLConfig:
                 "own MaxEnt distribution; the demos are not, so set demos_in_partition=False"
             )
 
+    @property
+    def reads_tails(self) -> bool:
+        """Whether a demo's tail (``WeightedSamples.tail``) changes the objective: only the
+        monotonic and goal regularisers read it."""
+        return self.mono_weight != 0.0 or self.goal_weight != 0.0
+
 
 @struct.dataclass
 class WeightedSamples:

@@ -283,7 +283,7 @@ def run_usv(
     train_env = make_task_env(windows, radii, params, task, horizon=task.training_horizon)
     task_demos = usv_demo_set(env, windows, radii)
     needs_dynamics = rgcl_config.temperature != "likelihood" and "rgcl" in config.methods
-    tails = task_tails(demos, task)
+    tails = task_tails(demos, task) if rgcl_config.gcl.reads_tails else None
     if tails is not None:
         summary["demo_tail"] = task.tail
     batch = demo_batch_pooled(
