@@ -182,7 +182,7 @@ def main(argv=None) -> int:
         type=int,
         default=None,
         help="steps recorded past each demo's window that GCL's monotonic and goal "
-        "regularisers see, with the neural cost (UsvTaskConfig.tail; default 110; 0: none)",
+        "regularisers see, when GCL has them (UsvTaskConfig.tail; default 0: none)",
     )
     parser.add_argument(
         "--margins",

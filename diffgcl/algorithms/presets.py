@@ -299,29 +299,10 @@ def usv_neural() -> RGCLConfig:
     ahead, proximity, bearing and closing speed; cross-track and heading error, speed made good;
     the hull's speeds and jets), anchored at the task's goal (on the course at cruise speed, the
     pole far astern; :meth:`~diffgcl.envs.usv.UsvEnv.cost_goal_state`), instead of weights on
-    chosen residuals with chosen clearance margins.
-
-    Differences from :func:`usv` beyond the cost's form, each measured on the tuning split
-    (docs/usv_cost_form.md has the runs):
-
-    * only the network's shape is learned (``network.shape_only``: tanh-bounded features, ``A``
-      at a fixed norm, the scale in the temperature), as the weighted form learns only ratios;
-    * GCL's update by feature matching (``importance_weights`` and ``demos_in_partition`` off):
-      with importance weights the partition rested on one trajectory (effective sample size
-      1.0) and the controllers diverged;
-    * GCL's monotonic regulariser (``mono_weight`` 10) and no goal term: the cost falls along
-      each demo, over its window and, with the USV task's demo tails
-      (:attr:`diffgcl.usv.UsvTaskConfig.tail`), over its recording past the window, where the
-      boat comes back to the course line; with a goal term at the recordings' last states
-      beside the tails, one seed's controllers of two diverged, without it neither did;
-    * no time input (a time-invariant cost, which training past the window assumes);
-    * 20 iterations (at 14 the true cost was still falling) and 10 samples per condition (with
-      5 the runs passed at 0.53× the demos' clearance, 4.7 % of them colliding)."""
+    chosen residuals with chosen clearance margins. Everything else as :func:`usv`."""
     base = usv("weighted")
     return dataclasses.replace(
         base,
-        iterations=20,
-        gps=dataclasses.replace(base.gps, num_samples=10),
         network=CostNetworkConfig(
             form="neural",
             features="env",
@@ -331,14 +312,6 @@ def usv_neural() -> RGCLConfig:
             std_floor=1.0,
             action_weight=0.3,
             learn_action_weight=False,
-            shape_only=True,
-        ),
-        gcl=dataclasses.replace(
-            base.gcl,
-            importance_weights=False,
-            demos_in_partition=False,
-            mono_weight=10.0,
-            goal_weight=0.0,
         ),
     )
 

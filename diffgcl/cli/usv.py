@@ -3,7 +3,7 @@ printing; the pipeline is :func:`diffgcl.usv.run_usv`, the pictures
 :func:`diffgcl.viz.usv.save_usv_plots`).
 
     diffgcl usv [--bags DIR --topics MAP] [--sets 2] [--observation full|radar|ranges]
-                [--range-encoding saturated|metres] [--train-extra 150] [--tail 110]
+                [--range-encoding saturated|metres] [--train-extra 150] [--tail 0]
                 [--margins 5,10,15,20] [--seeds 1] [--retrain 1]
                 [--heldout 256] [--fast]
                 [--set a.b=value] [--out runs/usv]
@@ -114,7 +114,7 @@ def register(subparsers) -> None:
         type=int,
         default=None,
         help="steps recorded past each demo's window that GCL's monotonic and goal "
-        "regularisers see, with the neural cost (default 110; 0: none)",
+        "regularisers see, when GCL has them (default 0: none)",
     )
     p.add_argument(
         "--margins",

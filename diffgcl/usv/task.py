@@ -55,8 +55,8 @@ class UsvTaskConfig:
     tail: up to this many steps recorded past each window given to GCL's monotonic and goal
     regularisers (:func:`task_tails`; 0: none): the windows end mid-return to the course line,
     and the recordings go on until the boat is back near it (2–106 steps on the built-in bags).
-    Read only when the learned cost has one of those regularisers (the neural form's
-    :func:`~diffgcl.algorithms.presets.usv_neural`; the weighted form has neither).
+    Read only when GCL has one of those regularisers
+    (:attr:`diffgcl.costs.gcl.GCLConfig.reads_tails`; the weighted cost has neither).
     """
 
     before: int = 120
@@ -68,7 +68,7 @@ class UsvTaskConfig:
     default_pole_radius: float = DEFAULT_POLE_RADIUS
     train_extra: int = 150
     proximity_margins: tuple[float, ...] | None = None
-    tail: int = 110
+    tail: int = 0
 
     @property
     def horizon(self) -> int:
