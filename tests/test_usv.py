@@ -433,3 +433,54 @@ def test_two_pole_env_sees_and_collides_with_both_poles():
     assert float(jnp.min(two.ranges(near))) < float(jnp.min(usv.ranges(near[:DX])))
     inside = near.at[hull_sim.IX_PX].set(x[DX])
     assert bool(two.metrics(jnp.stack([x, inside]))["collision"])
+
+
+def test_neural_cost_with_prior_residuals_weighs_the_course_beside_the_network():
+    """``network.prior_residuals``: the state cost is the course residuals' weighted squares
+    (each over its RMS on the fitted states, floored at ``std_floor``) plus the network's term,
+    each scaled by ``e^θ̃`` with ``mean θ̃ = 0``; the network reads the task features alone; the
+    cost is zero at the goal, grows without bound off the course line, and its Gauss-Newton
+    expansion is PSD. A network without the option, or an env without prior residuals, is
+    refused."""
+    import dataclasses
+
+    from diffgcl.algorithms.presets import usv_neural
+    from diffgcl.algorithms.rgcl import make_network
+    from diffgcl.costs.network import CostNetwork
+
+    usv = make_usv_env(horizon=10)
+    base = usv_neural()
+    shape = dataclasses.replace(base.network, shape_only=True)
+    prior = dataclasses.replace(shape, prior_residuals=True)
+    net = make_network(dataclasses.replace(base, network=prior), usv)
+    alone = make_network(dataclasses.replace(base, network=shape), usv)
+    assert net.network_input_dim == alone.state_input_dim == 16 and net.prior_dim == 6
+    params = net.init(jax.random.PRNGKey(0))
+    X = usv.initial_states()
+    X = jnp.concatenate([X, X.at[:, hull_sim.IX_PY].add(7.0).at[:, hull_sim.IX_VX].add(-2.0)])
+    params = params.replace(norm=net.fit_normaliser(X))
+    theta = jnp.array([0.3, -0.2, 0.5, 0.0, -0.4, 0.1, 0.7], X.dtype)
+    params = params.replace(net={**params.net, "log_w": theta})
+    alone_params = net.init(jax.random.PRNGKey(0))
+    alone_params = alone_params.replace(
+        net={k: v for k, v in params.net.items() if k != "log_w"},
+        norm=alone.fit_normaliser(X),
+    )
+    rho = jax.vmap(usv.cost_prior_residuals)(X)
+    rms = np.maximum(np.sqrt(np.mean(np.asarray(rho) ** 2, axis=0)), prior.std_floor)
+    w = np.exp(np.asarray(theta) - np.mean(np.asarray(theta)))
+    for x in X:
+        r = np.asarray(usv.cost_prior_residuals(x))
+        expected = np.sum(w[:6] * (r / rms) ** 2) + w[6] * float(alone.state_cost(alone_params, x))
+        np.testing.assert_allclose(float(net.state_cost(params, x)), expected, rtol=1e-9)
+    assert float(net.state_cost(params, usv.cost_goal_state())) < 1e-12
+    far = [float(net.state_cost(params, X[0].at[hull_sim.IX_PY].set(d))) for d in (100, 1000)]
+    assert far[1] > 50.0 * far[0] > 0.0  # quadratic in the cross-track error, not bounded
+    quad = net.expand(params, jnp.stack([X[0]] * 3), jnp.zeros((2, usv.dU), X.dtype))
+    assert np.all(np.linalg.eigvalsh(np.asarray(quad.l_xx)) > -1e-9)
+    grad = jax.grad(lambda p: net.state_cost(p, X[1]))(params)
+    assert np.all(np.abs(np.asarray(grad.net["log_w"])) > 0.0)
+    with pytest.raises(ValueError, match="prior_map"):
+        CostNetwork(prior, usv.dX, usv.dU, goal_state=tuple(usv.cost_goal_state().tolist()))
+    with pytest.raises(ValueError, match="prior_residuals"):
+        dataclasses.replace(prior, form="weighted", shape_only=False)

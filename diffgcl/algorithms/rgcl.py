@@ -356,7 +356,8 @@ class RGCL(NamedTuple):
 def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
     """The cost network of ``config`` for ``env`` (parameters in the run's float dtype; with
     ``network.features == "env"`` it reads ``env.cost_features``, or ``env.cost_residuals`` for
-    the weighted form; the neural form is anchored at ``env.cost_goal_state()``; an env with
+    the weighted form; the neural form is anchored at ``env.cost_goal_state()`` and with
+    ``network.prior_residuals`` weighs ``env.cost_prior_residuals`` beside it; an env with
     ``action_limit_residuals`` gets its actuator-limit barrier as a fixed part of the cost)."""
     dtype = jnp.asarray(env.initial_states()).dtype
     features = None
@@ -377,6 +378,14 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
                 "where the cost is zero)"
             )
         goal = tuple(float(v) for v in np.asarray(env.cost_goal_state()))  # hashable
+    prior = None
+    if config.network.prior_residuals:
+        prior = getattr(env, "cost_prior_residuals", None)
+        if prior is None:
+            raise ValueError(
+                f"env {env.name!r} has no cost_prior_residuals for network.prior_residuals=True "
+                "(the residuals weighed beside the network)"
+            )
     return CostNetwork(
         config.network,
         env.dX,
@@ -385,6 +394,7 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
         feature_map=features,
         action_limits=limits,
         goal_state=goal,
+        prior_map=prior,
     )
 
 

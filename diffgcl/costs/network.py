@@ -121,7 +121,9 @@ class CostNetworkConfig:
     the temperature alone sets the scale; squash: the shape-only features' map, ``"tanh"``
     (bounded: far from the data the cost is flat) or ``"asinh"`` (``asinh y``: it keeps growing
     far from the data, like ``log² |y|``, so that a controller that wanders off still finds the
-    way back downhill).
+    way back downhill); prior_residuals (the ``"neural"`` form): beside the network, the env's
+    prior residuals (``CostNetwork.prior_map``) with learned weights as in the weighted form, the
+    network's term one more weighted residual (module docstring).
     """
 
     hidden: tuple[int, ...] = (32, 32)
@@ -138,6 +140,7 @@ class CostNetworkConfig:
     form: str = "gram"
     shape_only: bool = False
     squash: str = "tanh"
+    prior_residuals: bool = False
 
     def __post_init__(self):
         if self.form not in ("gram", "neural", "weighted"):
@@ -146,10 +149,11 @@ class CostNetworkConfig:
                 "(‖A (y − y*)‖², zero at a goal) or 'weighted' (learned weights on squared "
                 "residuals)"
             )
-        if self.shape_only and self.form != "neural":
-            raise ValueError(
-                f"CostNetworkConfig: shape_only is for form 'neural', not {self.form!r}"
-            )
+        for name in ("shape_only", "prior_residuals"):
+            if getattr(self, name) and self.form != "neural":
+                raise ValueError(
+                    f"CostNetworkConfig: {name} is for form 'neural', not {self.form!r}"
+                )
         if self.time_input and self.horizon < 2:
             raise ValueError(
                 f"CostNetworkConfig: time_input needs horizon, the demos' window in steps "
@@ -284,7 +288,10 @@ class CostNetwork:
     dynamics lose all authority beyond the limits, and without this term the LQR pushes the
     actions there for nothing (on the USV the controllers blew up within five iterations and
     the boat circled with its nozzle hard over). ``goal_state``: the state ``x*`` (dX floats)
-    where the ``"neural"`` form's cost is zero (required by that form, unused by the others)."""
+    where the ``"neural"`` form's cost is zero (required by that form, unused by the others).
+    ``prior_map``: the env's prior residuals ``ρ(x): [K]`` that the ``"neural"`` form with
+    ``prior_residuals`` weighs beside its network (e.g.
+    :meth:`diffgcl.envs.usv.UsvEnv.cost_prior_residuals`); required by that option."""
 
     config: CostNetworkConfig
     dX: int
@@ -293,43 +300,64 @@ class CostNetwork:
     feature_map: Callable[[Array], Array] | None = None
     action_limits: Callable[[Array], Array] | None = None
     goal_state: tuple[float, ...] | None = None
+    prior_map: Callable[[Array], Array] | None = None
 
     def __post_init__(self):
         if self.config.form == "neural" and self.goal_state is None:
             raise ValueError("CostNetwork: form 'neural' needs a goal_state (the env's)")
+        if self.config.prior_residuals != (self.prior_map is not None):
+            raise ValueError(
+                "CostNetwork: network.prior_residuals needs a prior_map (the env's "
+                "cost_prior_residuals), and a prior_map needs network.prior_residuals"
+            )
+
+    def _out_dim(self, fn: Callable[[Array], Array]) -> int:
+        shape = jax.eval_shape(fn, jax.ShapeDtypeStruct((self.dX,), self.param_dtype))
+        return int(shape.shape[0])
+
+    @property
+    def network_input_dim(self) -> int:
+        """Size of the state part of the network's input: ``dF`` with a feature map, else
+        ``dX``."""
+        return self.dX if self.feature_map is None else self._out_dim(self.feature_map)
+
+    @property
+    def prior_dim(self) -> int:
+        """K, the number of prior residuals (0 without ``prior_residuals``)."""
+        return 0 if self.prior_map is None else self._out_dim(self.prior_map)
 
     @property
     def state_input_dim(self) -> int:
-        """Size of what the normaliser sees: ``dF`` with a feature map, else ``dX``."""
-        if self.feature_map is None:
-            return self.dX
-        shape = jax.eval_shape(self.feature_map, jax.ShapeDtypeStruct((self.dX,), self.param_dtype))
-        return int(shape.shape[0])
+        """Size of what the normaliser sees: the network's state input and the prior residuals
+        after it."""
+        return self.network_input_dim + self.prior_dim
 
     def state_input(self, x: Array) -> Array:
-        """``φ(x)`` with a feature map, else ``x``: [state_input_dim]."""
-        return x if self.feature_map is None else self.feature_map(x)
+        """``φ(x)`` with a feature map, else ``x``, followed by the prior residuals ``ρ(x)`` with
+        ``prior_residuals``: [state_input_dim]."""
+        f = x if self.feature_map is None else self.feature_map(x)
+        return f if self.prior_map is None else jnp.concatenate([f, self.prior_map(x)])
 
     def fit_normaliser(self, X: Array, mask: Array | None = None) -> InputNormaliser:
-        """The normaliser's statistics from states ``X: [..., dX]`` (of their features with a
-        feature map)."""
+        """The normaliser's statistics from states ``X: [..., dX]`` (of :meth:`state_input`)."""
         flat = X.reshape(-1, X.shape[-1])
-        inputs = flat if self.feature_map is None else jax.vmap(self.feature_map)(flat)
+        inputs = jax.vmap(self.state_input)(flat)
         norm = init_normaliser(self.state_input_dim, inputs.dtype)
         return update_normaliser(norm, inputs, None if mask is None else mask.reshape(-1))
 
     @property
     def _features(self) -> FeatureNetwork:
+        d = self.network_input_dim
         return FeatureNetwork(
             hidden=self.config.hidden,
             n_features=self.config.n_features,
-            identity_dim=self.state_input_dim if self.config.identity_init else 0,
-            linear_dim=self.state_input_dim if self.config.linear_skip else 0,
+            identity_dim=d if self.config.identity_init else 0,
+            linear_dim=d if self.config.linear_skip else 0,
             param_dtype=self.param_dtype,
         )
 
     def _input_dim(self) -> int:
-        return self.state_input_dim + (1 if self.config.time_input else 0)
+        return self.network_input_dim + (1 if self.config.time_input else 0)
 
     def init(self, key: PRNGKey) -> CostParams:
         """Random parameters (identity path if configured), unit normaliser."""
@@ -345,6 +373,7 @@ class CostNetwork:
                 norm=init_normaliser(d, self.param_dtype),
                 log_temperature=jnp.zeros((), self.param_dtype),
             )
+        d = self.network_input_dim
         if cfg.linear_skip and cfg.n_features <= d:
             raise ValueError(f"linear_skip needs n_features > the state input's size {d}")
         too_narrow = min(cfg.hidden, default=2 * d) < 2 * d or cfg.n_features < d
@@ -362,6 +391,8 @@ class CostNetwork:
             "b": jnp.zeros(F, self.param_dtype),
             "log_w_u": jnp.log(jnp.asarray(cfg.action_weight, self.param_dtype)),
         }
+        if cfg.prior_residuals:  # the prior residuals' log weights, then the network's
+            net["log_w"] = jnp.zeros(self.prior_dim + 1, self.param_dtype)
         return CostParams(
             net=net,
             norm=init_normaliser(self.state_input_dim, self.param_dtype),
@@ -370,13 +401,15 @@ class CostNetwork:
 
     def normalise(self, params: CostParams, x: Array) -> Array:
         """``(φ(x) − mean) / max(std, floor)`` (``φ(x) = x`` without a feature map) with the
-        statistics held constant: [state_input_dim]."""
+        statistics held constant: [network_input_dim]."""
         return self._normalise_input(params, self.state_input(x))
 
     def _normalise_input(self, params: CostParams, f: Array) -> Array:
+        """The network's part of ``f`` (the prior residuals left out), normalised."""
+        d = self.network_input_dim
         norm = jax.lax.stop_gradient(params.norm)
-        std = jnp.maximum(jnp.sqrt(norm.var), self.config.std_floor)
-        return (f - norm.mean) / std
+        std = jnp.maximum(jnp.sqrt(norm.var[:d]), self.config.std_floor)
+        return (f[:d] - norm.mean[:d]) / std
 
     def network_input(self, params: CostParams, x: Array, t: Array | int = 0) -> Array:
         """The feature network's input: the normalised state, with ``t / horizon`` appended when
@@ -448,7 +481,13 @@ class CostNetwork:
                 squash = SQUASHES[self.config.squash]
                 y, y_goal = squash(y), squash(y_goal)
                 A = A * (self.config.a_scale * jnp.sqrt(A.shape[0]) / jnp.linalg.norm(A))
-            return A @ (y - y_goal)
+            r = A @ (y - y_goal)
+            if not self.config.prior_residuals:
+                return r
+            w = jnp.exp(0.5 * self.log_weights(params))
+            d = self.network_input_dim
+            prior = w[:-1] * f[d:] / self.residual_scale(params)[d:]
+            return jnp.concatenate([prior, w[-1] * r])
         if self.is_affine:
             M, m = self.affine_residual_map(params)
             return M @ z + m
@@ -472,8 +511,14 @@ class CostNetwork:
 
     def feature_weights(self, params: CostParams) -> Array:
         """The weighted form's per-residual weights ``e^θ̃ / rms²`` (θ̃ = :meth:`log_weights`):
-        [K] (cost per squared unit of each residual, at ρ = 0)."""
-        return jnp.exp(self.log_weights(params)) / self.residual_scale(params) ** 2
+        [K] (cost per squared unit of each residual, at ρ = 0). With ``prior_residuals``: the
+        prior residuals' and, last, the network term's ``e^θ̃`` (its residual has no RMS):
+        [K + 1]."""
+        w = jnp.exp(self.log_weights(params))
+        if self.config.prior_residuals:
+            scale = self.residual_scale(params)[self.network_input_dim :]
+            return w / jnp.concatenate([scale**2, jnp.ones(1, scale.dtype)])
+        return w / self.residual_scale(params) ** 2
 
     def weighted_residual(self, params: CostParams, x: Array) -> Array:
         """``e^{θ̃/2} ⊙ ρ(x) / rms``: [K] (weighted form)."""

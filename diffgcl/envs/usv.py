@@ -353,12 +353,20 @@ class UsvEnv:
         front of it) does not pay. Proximity terms with long tails (exp(−clearance/ℓ), ℓ up to
         40 m) made exactly that pay: the controllers circled.
         """
-        h = x[:IX_RADIUS]
-        nu = hull_sim.body_velocity(h)
         s = PROXIMITY_SOFTNESS
         margins = jnp.asarray(self.proximity_margins, x.dtype)
         inside = s * jax.nn.softplus((margins - self.clearance(x)) / s)
-        course = jnp.stack(
+        return jnp.concatenate([self.cost_prior_residuals(x), inside])
+
+    def cost_prior_residuals(self, x: Array) -> Array:
+        """The course residuals of :meth:`cost_residuals` (its first six, names
+        :data:`COURSE_RESIDUAL_NAMES`): [6]. What the neural cost with
+        ``network.prior_residuals`` weighs beside its network. They say where the boat should
+        go: along the course line at cruise speed. They say nothing of the pole, and there
+        are no clearance margins; keeping clear is left to the network."""
+        h = x[:IX_RADIUS]
+        nu = hull_sim.body_velocity(h)
+        return jnp.stack(
             [
                 h[hull_sim.IX_PY],
                 2.0 * jnp.sin(0.5 * h[hull_sim.IX_PSI]),
@@ -368,7 +376,6 @@ class UsvEnv:
                 nu[2],
             ]
         )
-        return jnp.concatenate([course, inside])
 
     def action_limit_residuals(self, u: Array) -> Array:
         """Residuals [4] of the normalised action beyond the actuators' limits (thrust above its

@@ -18,7 +18,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from diffgcl.data.demos import DemoSet
-from diffgcl.envs.usv import UsvEnv, two_pole_env
+from diffgcl.envs.usv import COURSE_RESIDUAL_NAMES, UsvEnv, two_pole_env
 from diffgcl.sim import hull as hull_sim
 from diffgcl.usv.bags import pole_radii
 from diffgcl.usv.evaluation import SituationRanges, heldout_starts, policy_tracks
@@ -178,10 +178,12 @@ def run_over_seeds(fn, seeds, *args):
 
 def learned_cost_weights(network, params, names: tuple[str, ...]) -> dict:
     """The weighted-form cost per residual (``names``:
-    :attr:`diffgcl.envs.usv.UsvEnv.cost_residual_names`), per training seed (``params`` with a
-    leading seed axis): ``per_unit`` — its weight per squared unit of the residual, at the cost's
-    temperature; ``log_w`` — the learned θ̃ (0 at the start, where every residual weighs 1 per
-    squared RMS of the demos; their mean stays 0)."""
+    :attr:`diffgcl.envs.usv.UsvEnv.cost_residual_names`; with the neural form's
+    ``prior_residuals`` the course residuals and ``"network"``, its term), per training seed
+    (``params`` with a leading seed axis): ``per_unit`` — its weight per squared unit of the
+    residual (the network's: of its term), at the cost's temperature; ``log_w`` — the learned
+    θ̃ (0 at the start, where every residual weighs 1 per squared RMS of the demos; their mean
+    stays 0)."""
     w = np.asarray(jax.vmap(lambda p: network.feature_weights(p) * network.temperature(p))(params))
     theta = np.asarray(jax.vmap(network.log_weights)(params))
     return {
@@ -410,9 +412,14 @@ def run_usv(
             "warnings": {str(seed): a["warning"] for seed, a in kept.items() if a["warning"]},
             "attempts": {str(seed): r for seed, r in record.items()},
         }
+        names = None
         if rgcl.network.config.form == "weighted" and rgcl_config.network.features == "env":
+            names = env.cost_residual_names
+        elif rgcl.network.config.prior_residuals:
+            names = (*COURSE_RESIDUAL_NAMES, "network")
+        if names is not None:
             summary["rgcl"]["cost_weights"] = learned_cost_weights(
-                rgcl.network, state.cost.params, env.cost_residual_names
+                rgcl.network, state.cost.params, names
             )
         run.rgcl_state, run.rgcl = state, rgcl
         judge("rgcl", rgcl.policy_phases.policy, state.policy.params)
