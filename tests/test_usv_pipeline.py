@@ -373,6 +373,9 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
         assert run.tracks[name].shape == (1, 4, T_eval + 1, run.env.dX)
     assert run.summary["hull_identification"]["max_relative_error"] < 0.5
     assert run.summary["demo_tail"] == 10
+    c_steps = run.summary["rgcl"]["c_steps"]
+    assert np.shape(c_steps["true_cost_median"]) == (1, 3)  # one seed, three iterations
+    assert all(np.isfinite(v) for v in c_steps["kl_over_target"][0])
     # One training seed, trained again at most once (retrain_warned=1) if it warned;
     # the summary's warning is the kept attempt's.
     record = run.summary["rgcl"]["attempts"]["0"]
@@ -405,6 +408,31 @@ def test_whole_run_on_tiny_bags(tiny_bags, tmp_path):
     assert (out / "notes.txt").read_text() == "mine"
     assert (out / "usv_tracks.png").is_file() and (out / "usv_cost_map.png").is_file()
     assert isinstance(run.demos, DemoSet)
+
+
+def test_c_step_diagnostics_by_hand():
+    """Per seed and iteration, over the inner C-steps and conditions: median and largest true
+    cost, mean step multiplier, median achieved KL over its target, failed C-steps."""
+    from types import SimpleNamespace
+
+    from diffgcl.usv.pipeline import c_step_diagnostics
+
+    cost = np.ones((2, 3, 1, 4))  # [seeds, iterations, inner, conditions]
+    cost[1, 2] = [1.0, 2.0, 3.0, 1e9]  # seed 1 diverges in one condition at iteration 2
+    failed = np.zeros_like(cost)
+    failed[0, 1, 0, :2] = 1.0
+    gps = SimpleNamespace(
+        cost=cost,
+        step_mult=np.full_like(cost, 0.5),
+        kl=np.full_like(cost, 0.3),
+        epsilon=np.full_like(cost, 0.6),
+        c_step_failed=failed,
+    )
+    d = c_step_diagnostics(SimpleNamespace(gps=gps))
+    assert d["true_cost_median"] == [[1.0, 1.0, 1.0], [1.0, 1.0, 2.5]]
+    assert d["true_cost_max"][1] == [1.0, 1.0, 1e9] and d["true_cost_max"][0] == [1.0] * 3
+    assert d["step_mult"] == [[0.5] * 3] * 2 and d["kl_over_target"] == [[0.5] * 3] * 2
+    assert d["c_step_failed"] == [[0.0, 2.0, 0.0], [0.0, 0.0, 0.0]]
 
 
 def test_cli_usv_choices_are_the_envs():

@@ -51,6 +51,17 @@ far astern, :meth:`diffgcl.envs.usv.UsvEnv.cost_goal_state`). The network is as 
 form's, but the cost is zero wherever the features equal the goal's, whatever GCL learns: the
 valley the weighted form gets from its residuals, without choosing the residuals.
 
+Prior residuals (``CostNetworkConfig.prior_residuals``, neural form): the env names a few
+residuals that say where the task goes (``CostNetwork.prior_map``; for the USV the course
+residuals — cross-track, heading and speed errors, sway, yaw rate —
+:meth:`diffgcl.envs.usv.UsvEnv.cost_prior_residuals`), and the state cost is
+``e^ρ [Σ_k e^{θ̃_k} (ρ_k(x)/rms_k)² + e^{θ̃_net} ‖A (y − y*)‖²]``, the weighted form's sum with
+the network's term as one more weighted residual (``θ̃`` mean zero, so GCL learns the ratios).
+The network reads the task features alone; the prior residuals are normalised by their RMS,
+not fed to it. The prior keeps the cost growing without bound away from the course, where a
+bounded (``shape_only``) network is flat, and leaves what the prior does not say — for the
+USV, keeping clear of the pole — to the network.
+
 The network is flax linen; everything outside it (``CostParams``, :class:`CostNetwork`) is plain,
 so the cost is a pure function of an explicit parameter pytree that jit/vmap/scan carry around.
 """

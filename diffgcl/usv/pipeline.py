@@ -219,6 +219,29 @@ def gcl_diagnostics(metrics) -> dict:
     }
 
 
+def c_step_diagnostics(metrics) -> dict:
+    """Per training seed and rGCL iteration (lists [seeds][iterations]), over the conditions
+    (and the iteration's inner C-steps): the median and largest true cost of the samples
+    (``true_cost_median``, ``true_cost_max``; a seed whose controllers diverge shows here
+    alone, where ``true_cost_per_iteration`` averages it with the others), the mean step
+    multiplier, the median KL the C-step reached over its target (``kl_over_target``; near 1
+    when the η search met the constraint) and how many C-steps failed (``c_step_failed``)."""
+    gps = metrics.gps
+
+    def per_seed(a, reduce):
+        a = np.asarray(a, np.float64)
+        return reduce(a.reshape(*a.shape[:2], -1), axis=2).tolist()
+
+    ratio = np.asarray(gps.kl, np.float64) / np.maximum(np.asarray(gps.epsilon, np.float64), 1e-30)
+    return {
+        "true_cost_median": per_seed(gps.cost, np.median),
+        "true_cost_max": per_seed(gps.cost, np.max),
+        "step_mult": per_seed(gps.step_mult, np.mean),
+        "kl_over_target": per_seed(ratio, np.median),
+        "c_step_failed": per_seed(gps.c_step_failed, np.sum),
+    }
+
+
 def identify_hull(demos: DemoSet, config=None, truth=None) -> tuple[object, dict]:
     """The hull identified from ``demos`` (:func:`diffgcl.data.sysid.identify`) and a summary:
     the fitted values and, given the ``truth``, the largest relative error."""
@@ -409,6 +432,7 @@ def run_usv(
             "policy_on_demo_starts": on_starts["policy"],
             "true_cost_per_iteration": np.asarray(metrics.gps.cost).mean((0, 2)).tolist(),
             "learning": gcl_diagnostics(metrics),
+            "c_steps": c_step_diagnostics(metrics),
             "warnings": {str(seed): a["warning"] for seed, a in kept.items() if a["warning"]},
             "attempts": {str(seed): r for seed, r in record.items()},
         }
