@@ -484,3 +484,26 @@ def test_neural_cost_with_prior_residuals_weighs_the_course_beside_the_network()
         CostNetwork(prior, usv.dX, usv.dU, goal_state=tuple(usv.cost_goal_state().tolist()))
     with pytest.raises(ValueError, match="prior_residuals"):
         dataclasses.replace(prior, form="weighted", shape_only=False)
+
+
+def test_cost_features_have_bounded_derivatives_at_the_pole():
+    """The learned cost's task features stay smooth where a boat sails through the pole's
+    centre: over a grid of positions around it (the centre included) no feature's gradient in
+    the hull's position exceeds a few per metre (by the pole's bearing over ``sqrt(d² + L²)``;
+    over ``d`` it ran past 10³), and far from the pole the bearing is the bearing."""
+    from diffgcl.envs.usv import BEARING_SOFTNESS
+
+    usv = make_usv_env(horizon=10)
+    x0 = usv.initial_states()[0]
+    pole = x0[hull_sim.SL_OBS]
+    worst = 0.0
+    for dx in (-3.0, -0.5, 0.0, 1e-3, 0.5, 3.0):
+        for dy in (-2.0, -1e-3, 0.0, 0.7, 4.0):
+            x = x0.at[hull_sim.IX_PX].set(pole[0] + dx).at[hull_sim.IX_PY].set(pole[1] + dy)
+            J = jax.jacfwd(usv.cost_features)(x)[:, jnp.array([hull_sim.IX_PX, hull_sim.IX_PY])]
+            assert np.all(np.isfinite(np.asarray(J)))
+            worst = max(worst, float(jnp.max(jnp.abs(J[:7]))))
+    speed = float(jnp.linalg.norm(x0[hull_sim.SL_QVEL][:2]))
+    assert worst < 2.0 + 2.0 * speed / BEARING_SOFTNESS
+    far = x0.at[hull_sim.IX_PX].set(pole[0] - 500.0).at[hull_sim.IX_PY].set(pole[1])
+    np.testing.assert_allclose(float(usv.cost_features(far)[4]), 1.0, atol=1e-3)  # dead ahead

@@ -90,6 +90,9 @@ DX = 11
 OBSERVATIONS = ("full", "radar", "ranges")
 RANGE_ENCODINGS = ("metres", "saturated")
 SATURATION_RANGE = 60.0  # m, of the saturated range encoding
+#: m: the cost features' pole bearing and closing speed divide by sqrt(d² + L²), not by the
+#: distance d, so that their derivatives stay bounded (about 1/L) at the pole's centre
+BEARING_SOFTNESS = 5.0
 STATE_NAMES = (*hull_sim.STATE_NAMES, "pole_radius")
 
 
@@ -284,7 +287,11 @@ class UsvEnv:
         The pole: its clearance and its distance ahead along the hull's heading (m, each read
         ``R tanh(d/R)`` with R = :data:`SATURATION_RANGE`, so that everything far reads alike), two
         soft proximity features exp(−clearance/ℓ) (ℓ = 5, 20 m), its bearing in the hull frame
-        (cos, sin) and the closing speed (m/s); the course: cross-track error (m), sin ψ and
+        (cos, sin) and the closing speed (m/s), each over ``sqrt(d² + L²)`` instead of the
+        distance ``d`` (L = :data:`BEARING_SOFTNESS`: they fade to 0 within a few metres of the
+        pole's centre, where the clearance features still tell how close it is; over ``d``
+        their derivatives ran to 10³–10⁴ per metre there, and the LQR expands the learned cost
+        through them); the course: cross-track error (m), sin ψ and
         1 − cos ψ (heading error), the speed made good along the course minus cruise; the hull:
         surge speed minus cruise, sway speed (m/s), yaw rate (rad/s), the lagged thrust and
         nozzle as fractions of their ranges. Every feature but the cross-track error is bounded
@@ -298,7 +305,7 @@ class UsvEnv:
         rel = h[hull_sim.SL_OBS] - h[:2]
         along = c * rel[0] + s * rel[1]
         across = -s * rel[0] + c * rel[1]
-        dist = jnp.sqrt(along**2 + across**2 + 1e-6)
+        dist = jnp.sqrt(along**2 + across**2 + BEARING_SOFTNESS**2)
         vel = h[hull_sim.SL_QVEL][:2]
         closing = (rel @ vel) / dist
         clearance = self.clearance(x)
