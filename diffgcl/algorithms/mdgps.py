@@ -68,6 +68,9 @@ from diffgcl.sim.simulator import Simulator
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey, Trajectory
 
 
+STEP_RULES = ("global", "classic")
+
+
 @dataclass(frozen=True)
 class PolicySettings:
     """The global policy's static settings (shared by MDGPS and rGCL).
@@ -77,7 +80,11 @@ class PolicySettings:
     global policy instead of the local controllers (GPS's ``sample_on_policy``); obs_noise: the
     policy sees noisy sensors in the samples and the S-step (noise-free in its linearisation and
     evaluation); outlier_cost_ratio: a condition whose samples cost more than this multiple of
-    the median condition's is left out of the S-step (:func:`condition_weights`; None: none is).
+    the median condition's is left out of the S-step (:func:`condition_weights`; None: none is);
+    step_rule: how the C-step's KL step adapts — ``"global"``: one multiplier for all conditions
+    from their averaged cost estimates; ``"classic"``: each condition its own, from its own
+    estimates (GPS's two MDGPS rules; under ``"global"`` one runaway condition's estimates,
+    orders of magnitude above the rest, set every condition's step).
     """
 
     network: PolicyConfig = field(default_factory=PolicyConfig)
@@ -85,6 +92,18 @@ class PolicySettings:
     sample_on_policy: bool = False
     obs_noise: bool = False
     outlier_cost_ratio: float | None = None
+    step_rule: str = "global"
+
+    def __post_init__(self):
+        if self.step_rule not in STEP_RULES:
+            raise ValueError(
+                f"PolicySettings: step_rule {self.step_rule!r}; choose one of {STEP_RULES}"
+            )
+
+    @property
+    def shared_step(self) -> bool:
+        """One KL step multiplier for all conditions (``step_rule="global"``)."""
+        return self.step_rule == "global"
 
 
 @struct.dataclass
@@ -516,7 +535,9 @@ def make_mdgps(
         samples = phases.fit_samples(sims.X, sims.U, sims.mean_X, sims.A, sims.B)
         anchor = policy_phases.linearise(state.policy, sims.O_clean, sims.J_obs, sims.X)
         quad = phases.expand(cost, samples)
-        step_mult = phases.adapt_step(state.gps, samples, quad, current=anchor, shared=True)
+        step_mult = phases.adapt_step(
+            state.gps, samples, quad, current=anchor, shared=config.policy.shared_step
+        )
         gps, gps_metrics = phases.inner(state.gps, samples, quad, step_mult, anchor=anchor)
         policy, s_metrics = policy_phases.s_step(
             state.policy, key_s, sims.X, sims.O, gps.controller, cost=gps_metrics.cost
