@@ -67,7 +67,6 @@ from diffgcl.sim.rollout import smooth_noise
 from diffgcl.sim.simulator import Simulator
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey, Trajectory
 
-
 STEP_RULES = ("global", "classic")
 
 
