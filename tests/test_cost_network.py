@@ -260,3 +260,30 @@ def test_weighted_form_is_a_positive_weighting_of_squared_residuals():
     np.testing.assert_allclose(new["log_w"], params.net["log_w"])
     with pytest.raises(ValueError, match="form"):
         CostNetworkConfig(form="sum")
+
+
+def test_limit_weight_scales_the_actuator_limit_term_only():
+    """``limit_weight`` λ multiplies the fixed limit term: c_λ − c_1 = e^ρ (λ − 1) ‖r_lim(u)‖²
+    by hand, the state and action terms untouched; a non-positive λ is refused."""
+
+    def limits(u):  # how far each action is past ±1
+        return jnp.concatenate([jax.nn.relu(u - 1.0), jax.nn.relu(-u - 1.0)])
+
+    x = jnp.array([0.3, -1.2, 2.5])
+    u = jnp.array([1.7, -0.4])
+    costs = {}
+    for lam in (1.0, 25.0):
+        net = CostNetwork(
+            CostNetworkConfig(hidden=(8, 8), n_features=5, limit_weight=lam),
+            dX,
+            dU,
+            jnp.float64,
+            action_limits=limits,
+        )
+        params = net.init(jax.random.key(0))
+        costs[lam] = float(net.cost(params, x, u, 0))
+    over = 0.7**2  # only the first action is past its limit, by 0.7
+    rho_scale = float(net.temperature(params))
+    np.testing.assert_allclose(costs[25.0] - costs[1.0], rho_scale * 24.0 * over, rtol=1e-12)
+    with pytest.raises(ValueError, match="limit_weight"):
+        CostNetworkConfig(limit_weight=0.0)

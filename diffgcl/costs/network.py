@@ -134,7 +134,10 @@ class CostNetworkConfig:
     far from the data, like ``log² |y|``, so that a controller that wanders off still finds the
     way back downhill); prior_residuals (the ``"neural"`` form): beside the network, the env's
     prior residuals (``CostNetwork.prior_map``) with learned weights as in the weighted form, the
-    network's term one more weighted residual (module docstring).
+    network's term one more weighted residual (module docstring); limit_weight: a factor on the
+    fixed actuator-limit term ``‖r_lim(u)‖²`` (``CostNetwork.action_limits``), for costs whose
+    learned part is far larger per step than the weighted form's (about 1 per residual on the
+    demos) and would outweigh the limits.
     """
 
     hidden: tuple[int, ...] = (32, 32)
@@ -152,6 +155,7 @@ class CostNetworkConfig:
     shape_only: bool = False
     squash: str = "tanh"
     prior_residuals: bool = False
+    limit_weight: float = 1.0
 
     def __post_init__(self):
         if self.form not in ("gram", "neural", "weighted"):
@@ -174,6 +178,8 @@ class CostNetworkConfig:
             raise ValueError(
                 f"CostNetworkConfig: squash {self.squash!r}; choose one of {sorted(SQUASHES)}"
             )
+        if not self.limit_weight > 0.0:
+            raise ValueError(f"CostNetworkConfig: limit_weight must be > 0, got {self.limit_weight}")
         if self.features not in ("state", "env"):
             raise ValueError(
                 f"CostNetworkConfig: features {self.features!r}; 'state' (the raw state) or "
@@ -572,11 +578,15 @@ class CostNetwork:
         return jnp.sqrt(self.temperature(params)) * r
 
     def action_residual(self, params: CostParams, u: Array) -> Array:
-        """``[sqrt(w_u) u; r_lim(u)]`` (the second part only with ``action_limits``), untempered."""
+        """``[sqrt(w_u) u; sqrt(λ_lim) r_lim(u)]`` (the second part only with ``action_limits``;
+        ``λ_lim``: ``config.limit_weight``), untempered."""
         r = jnp.sqrt(self.action_weight(params)) * u
         if self.action_limits is None:
             return r
-        return jnp.concatenate([r, self.action_limits(u)])
+        limits = self.action_limits(u)
+        if self.config.limit_weight != 1.0:
+            limits = jnp.sqrt(jnp.asarray(self.config.limit_weight, limits.dtype)) * limits
+        return jnp.concatenate([r, limits])
 
     def action_cost(self, params: CostParams, u: Array) -> Array:
         """``w_u ‖u‖² + ‖r_lim(u)‖²`` at ρ = 0: scalar."""
