@@ -179,7 +179,9 @@ class CostNetworkConfig:
                 f"CostNetworkConfig: squash {self.squash!r}; choose one of {sorted(SQUASHES)}"
             )
         if not self.limit_weight > 0.0:
-            raise ValueError(f"CostNetworkConfig: limit_weight must be > 0, got {self.limit_weight}")
+            raise ValueError(
+                f"CostNetworkConfig: limit_weight must be > 0, got {self.limit_weight}"
+            )
         if self.features not in ("state", "env"):
             raise ValueError(
                 f"CostNetworkConfig: features {self.features!r}; 'state' (the raw state) or "
