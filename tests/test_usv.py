@@ -375,7 +375,7 @@ def test_shape_only_neural_cost_has_a_fixed_scale():
     usv = make_usv_env(horizon=10)
     config = usv_neural()
     config = dataclasses.replace(
-        config, network=dataclasses.replace(config.network, shape_only=True)
+        config, network=dataclasses.replace(config.network, shape_only=True, prior_residuals=False)
     )
     net = make_network(config, usv)
     params = net.init(jax.random.PRNGKey(0))
@@ -450,7 +450,7 @@ def test_neural_cost_with_prior_residuals_weighs_the_course_beside_the_network()
 
     usv = make_usv_env(horizon=10)
     base = usv_neural()
-    shape = dataclasses.replace(base.network, shape_only=True)
+    shape = dataclasses.replace(base.network, shape_only=True, prior_residuals=False)
     prior = dataclasses.replace(shape, prior_residuals=True)
     net = make_network(dataclasses.replace(base, network=prior), usv)
     alone = make_network(dataclasses.replace(base, network=shape), usv)

@@ -293,13 +293,20 @@ def usv(cost: str = "weighted") -> RGCLConfig:
 
 
 def usv_neural() -> RGCLConfig:
-    """The USV task with a neural learned cost: :func:`usv` with the cost network
-    ``‖A (y(z) − y(z*))‖²``, ``y`` a 32 × 32 ReLU network on the task features
+    """The USV task with a neural learned cost: :func:`usv` with, in place of the clearance
+    margins, a cost network ``‖Â (tanh y(z) − tanh y(z*))‖²`` beside the course residuals
+    (:meth:`diffgcl.envs.usv.UsvEnv.cost_prior_residuals`), each term with a learned weight
+    (``network.prior_residuals``). ``y`` is a 32 × 32 ReLU network on the task features
     (:meth:`diffgcl.envs.usv.UsvEnv.cost_features`: the pole's saturated clearance and distance
     ahead, proximity, bearing and closing speed; cross-track and heading error, speed made good;
     the hull's speeds and jets), anchored at the task's goal (on the course at cruise speed, the
-    pole far astern; :meth:`~diffgcl.envs.usv.UsvEnv.cost_goal_state`), instead of weights on
-    chosen residuals with chosen clearance margins. Everything else as :func:`usv`."""
+    pole far astern; :meth:`~diffgcl.envs.usv.UsvEnv.cost_goal_state`), its scale fixed
+    (``shape_only``): what keeps clear of the pole is the network's alone. The cost is updated
+    by feature matching (``gcl.importance_weights=False``: GCL's importance weights rest on one
+    sample here), and its actuator-limit barrier weighs 1000× the hand-written cost's
+    (``network.limit_weight``): the feature-matching cost costs thousands per step on the
+    demos, and at the plain weight the controllers commanded far past the limits, where the
+    clipped hull has no control authority, and diverged. Everything else as :func:`usv`."""
     base = usv("weighted")
     return dataclasses.replace(
         base,
@@ -312,7 +319,11 @@ def usv_neural() -> RGCLConfig:
             std_floor=1.0,
             action_weight=0.3,
             learn_action_weight=False,
+            shape_only=True,
+            prior_residuals=True,
+            limit_weight=1000.0,
         ),
+        gcl=dataclasses.replace(base.gcl, importance_weights=False, demos_in_partition=False),
     )
 
 
