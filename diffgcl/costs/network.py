@@ -591,12 +591,12 @@ class CostNetwork:
         return jnp.concatenate([r, limits])
 
     def action_cost(self, params: CostParams, u: Array) -> Array:
-        """``w_u ‖u‖² + ‖r_lim(u)‖²`` at ρ = 0: scalar."""
+        """``w_u ‖u‖² + λ_lim ‖r_lim(u)‖²`` at ρ = 0: scalar."""
         r = self.action_residual(params, u)
         return r @ r
 
     def cost(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
-        """``c_φ(x, u, t) = s(x, t) + e^ρ (w_u ‖u‖² + ‖r_lim(u)‖²)``: scalar."""
+        """``c_φ(x, u, t) = s(x, t) + e^ρ (w_u ‖u‖² + λ_lim ‖r_lim(u)‖²)``: scalar."""
         action = self.temperature(params) * self.action_cost(params, u)
         return self.state_cost(params, x, t) + action
 
