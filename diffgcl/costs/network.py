@@ -571,7 +571,8 @@ class CostNetwork:
         return self.temperature(params) * (r @ r)
 
     def residual(self, params: CostParams, x: Array, u: Array, t: Array | int = 0) -> Array:
-        """Residual ``r`` with ``c = ‖r‖²``: ``e^{ρ/2} [A y(x, t) + b; sqrt(w_u) u; sqrt(λ_lim) r_lim(u)]``.
+        """Residual ``r`` with ``c = ‖r‖²``:
+        ``e^{ρ/2} [A y(x, t) + b; sqrt(w_u) u; sqrt(λ_lim) r_lim(u)]``.
 
         For Gauss–Newton expansion: ``l_xx ≈ 2 J_xᵀJ_x``, ``l_uu ≈ 2 e^ρ (w_u I + J_limᵀJ_lim)``
         (``J_lim`` of ``r_lim``; without limits exactly ``2 e^ρ w_u I``), ``l_ux ≈ 2 J_uᵀJ_x``.
