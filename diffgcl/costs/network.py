@@ -586,9 +586,7 @@ class CostNetwork:
         r = jnp.sqrt(self.action_weight(params)) * u
         if self.action_limits is None:
             return r
-        limits = self.action_limits(u)
-        if self.config.limit_weight != 1.0:
-            limits = jnp.sqrt(jnp.asarray(self.config.limit_weight, limits.dtype)) * limits
+        limits = jnp.sqrt(jnp.asarray(self.config.limit_weight, r.dtype)) * self.action_limits(u)
         return jnp.concatenate([r, limits])
 
     def action_cost(self, params: CostParams, u: Array) -> Array:
