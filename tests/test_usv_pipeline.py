@@ -122,8 +122,8 @@ def test_scores_of_hand_built_tracks():
 def test_warned_seeds_are_trained_again():
     """A seed whose controllers or policy warn on their training starts is trained again with a
     new key, at most ``retrain`` times, until an attempt does not warn; the first such attempt is
-    kept, else the best (the policy's hits, then its clearance short of 0.9×, then the
-    controllers' hits, then more back on course). Others train once."""
+    kept, else the best (the policy's hits, then more of it back on course, then its clearance
+    short of 0.9×, then the controllers' hits, then more back on course). Others train once."""
     fine = (0.0, 1.0, 1.0)  # (hit rate, back on course, clearance ratio)
     outcomes = {  # (seed, attempt) -> (controllers', policy's) figures
         (0, 0): (fine, fine),  # no warning: trained once
@@ -134,6 +134,9 @@ def test_warned_seeds_are_trained_again():
         (2, 2): ((0.2, 0.5, 1.0), (0.0, 1.0, 0.85)),  # the closest to 0.9×: kept
         (3, 0): (fine, (0.0, 1.0, 0.85)),  # only the policy warns, then not: attempt 1 kept
         (3, 1): ((0.0, 1.0, 1.1), (0.0, 1.0, 0.95)),
+        (4, 0): ((0.1, 1.0, 0.8), (0.0, 1.0, 0.7)),  # a close pass that comes back: kept
+        (4, 1): ((0.0, 0.0, 2.8), (0.0, 0.0, 2.9)),  # diverged: circles far off, never back
+        (4, 2): ((0.0, 0.0, 3.5), (0.0, 0.0, 3.4)),
     }
     by_key = {tuple(np.asarray(U.training_key(s, a)).tolist()): (s, a) for s, a in outcomes}
     calls = []
@@ -154,21 +157,21 @@ def test_warned_seeds_are_trained_again():
 
     said = []
     out, Xc, Xp, per, _, record = U.train_retrying_warned(
-        train, figures, [0, 1, 2, 3], 10, retrain=2, say=said.append
+        train, figures, [0, 1, 2, 3, 4], 10, retrain=2, say=said.append
     )
     assert calls == [
-        [(0, 0), (1, 0), (2, 0), (3, 0)],
-        [(1, 1), (2, 1), (3, 1)],
-        [(2, 2)],
+        [(0, 0), (1, 0), (2, 0), (3, 0), (4, 0)],
+        [(1, 1), (2, 1), (3, 1), (4, 1)],
+        [(2, 2), (4, 2)],
     ]
-    kept = [(0, 0), (1, 1), (2, 2), (3, 1)]
+    kept = [(0, 0), (1, 1), (2, 2), (3, 1), (4, 0)]
     np.testing.assert_array_equal(out["id"], kept)
     np.testing.assert_array_equal(Xc, [outcomes[k][0] for k in kept])
     np.testing.assert_array_equal(Xp, [outcomes[k][1] for k in kept])
-    assert per["controllers"]["return_to_course_rate"] == [1.0, 0.95, 0.5, 1.0]
-    assert per["policy"]["clearance_ratio_vs_demos"] == [1.0, 1.0, 0.85, 0.95]
-    assert [record[s]["kept"] for s in (0, 1, 2, 3)] == [0, 1, 2, 1]
-    assert [len(record[s]["attempts"]) for s in (0, 1, 2, 3)] == [1, 2, 3, 2]
+    assert per["controllers"]["return_to_course_rate"] == [1.0, 0.95, 0.5, 1.0, 1.0]
+    assert per["policy"]["clearance_ratio_vs_demos"] == [1.0, 1.0, 0.85, 0.95, 0.7]
+    assert [record[s]["kept"] for s in (0, 1, 2, 3, 4)] == [0, 1, 2, 1, 0]
+    assert [len(record[s]["attempts"]) for s in (0, 1, 2, 3, 4)] == [1, 2, 3, 2, 3]
     assert record[1]["attempts"][0]["warning"] and not record[1]["attempts"][1]["warning"]
     assert record[2]["attempts"][2]["collision_rate"] == 0.2
     assert record[2]["attempts"][1]["policy"]["clearance_ratio_vs_demos"] == 0.8

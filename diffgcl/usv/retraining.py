@@ -119,12 +119,14 @@ def seed_name(seed: int, attempt: int) -> str:
 
 def _standing(controllers: dict, policy: dict | None, i: int, warned: bool) -> tuple:
     """Sort key of seed ``i``'s training attempt, lower is better: no warning; then, the policy
-    being what sails, fewer policy hits, less clearance short of :data:`POLICY_CLEARANCE_WARN`,
-    more of it back on course; then fewer controller hits, more controllers back on course."""
+    being what sails, fewer policy hits, more of it back on course, less clearance short of
+    :data:`POLICY_CLEARANCE_WARN`; then fewer controller hits, more controllers back on course.
+    Back on course comes before the clearance: a diverged attempt circles far from the pole, so
+    it is never short of clearance, and it must not beat a close pass that comes back."""
     sails = ()
     if policy is not None:
         short = max(0.0, POLICY_CLEARANCE_WARN - policy["clearance_ratio_vs_demos"][i])
-        sails = (policy["collision_rate"][i], short, -policy["return_to_course_rate"][i])
+        sails = (policy["collision_rate"][i], -policy["return_to_course_rate"][i], short)
     return (
         warned,
         *sails,
