@@ -507,3 +507,103 @@ def test_cost_features_have_bounded_derivatives_at_the_pole():
     assert worst < 2.0 + 2.0 * speed / BEARING_SOFTNESS
     far = x0.at[hull_sim.IX_PX].set(pole[0] - 500.0).at[hull_sim.IX_PY].set(pole[1])
     np.testing.assert_allclose(float(usv.cost_features(far)[4]), 1.0, atol=1e-3)  # dead ahead
+
+
+def _reflect(x: jnp.ndarray) -> jnp.ndarray:
+    """The situation reflected across the course line (world y = 0): y, heading, world sway
+    velocity, yaw rate, nozzle angle and the pole's y change sign."""
+    flip = np.ones(x.shape[-1])
+    for i in (
+        hull_sim.IX_PY,
+        hull_sim.IX_PSI,
+        hull_sim.IX_VY,
+        hull_sim.IX_R,
+        hull_sim.IX_NOZZLE,
+        hull_sim.IX_OBS_Y,
+    ):
+        flip[i] = -1.0
+    return x * flip
+
+
+def test_cost_feature_mirror_is_the_features_under_reflection():
+    """``UsvEnv.cost_feature_mirror`` is what reflecting the state does to each task feature,
+    checked on the state itself over random situations (moving, turned, jets working)."""
+    usv = make_usv_env(horizon=10)
+    sign = np.asarray(usv.cost_feature_mirror)
+    rng = np.random.default_rng(3)
+    for x in usv.initial_states():
+        for _ in range(4):
+            x = x.at[:10].add(
+                jnp.asarray(rng.normal(size=10) * [20, 15, 0.5, 2, 1, 0.2, 50, 0.2, 0, 0])
+            )
+            np.testing.assert_allclose(
+                np.asarray(usv.cost_features(_reflect(x))),
+                sign * np.asarray(usv.cost_features(x)),
+                atol=1e-12,
+            )
+            r = np.asarray(usv.cost_prior_residuals(x))  # the course residuals only flip sign
+            np.testing.assert_allclose(
+                np.abs(np.asarray(usv.cost_prior_residuals(_reflect(x)))), np.abs(r), atol=1e-12
+            )
+
+
+def test_mirrored_neural_cost_cannot_prefer_a_side():
+    """``network.mirror``: the neural cost of a situation equals its reflection's, to rounding,
+    and is the mean of the unmirrored network's cost of the two; without it a random network
+    tells the two apart (so the check can fail); a mirror needs the option and vice versa."""
+    import dataclasses
+
+    from diffgcl.algorithms.presets import usv_neural
+    from diffgcl.algorithms.rgcl import make_network
+    from diffgcl.costs.network import CostNetwork
+
+    usv = make_usv_env(horizon=10)
+    base = usv_neural()
+    mirrored = dataclasses.replace(base, network=dataclasses.replace(base.network, mirror=True))
+    net, plain = make_network(mirrored, usv), make_network(base, usv)
+    X = usv.initial_states()
+    X = jnp.concatenate([X, X.at[:, hull_sim.IX_PX].add(80.0).at[:, hull_sim.IX_PY].add(-6.0)])
+    params = net.init(jax.random.PRNGKey(1))
+    params = params.replace(norm=net.fit_normaliser(X))
+    u = jnp.array([0.3, -0.2])
+    gaps = []
+    for x in X:
+        c, c_ref = (
+            float(net.cost(params, x, u)),
+            float(net.cost(params, _reflect(x), -u * jnp.array([-1.0, 1.0]))),
+        )
+        np.testing.assert_allclose(c, c_ref, rtol=1e-10)
+        mean = 0.5 * (
+            float(plain.state_cost(params, x)) + float(plain.state_cost(params, _reflect(x)))
+        )
+        # the prior residuals are symmetric, so only the network's term is averaged
+        np.testing.assert_allclose(float(net.state_cost(params, x)), mean, rtol=1e-10)
+        a, b = float(plain.state_cost(params, x)), float(plain.state_cost(params, _reflect(x)))
+        gaps.append(abs(a - b) / max(a, b))
+    assert max(gaps) > 1e-3
+    quad = net.expand(params, jnp.stack([X[4]] * 3), jnp.zeros((2, usv.dU), X.dtype))
+    assert np.all(np.linalg.eigvalsh(np.asarray(quad.l_xx)) > -1e-9)
+    goal = tuple(usv.cost_goal_state().tolist())
+    with pytest.raises(ValueError, match="feature_mirror"):
+        CostNetwork(
+            mirrored.network,
+            usv.dX,
+            usv.dU,
+            goal_state=goal,
+            feature_map=usv.cost_features,
+            prior_map=usv.cost_prior_residuals,
+        )
+    with pytest.raises(ValueError, match="16 signs"):
+        CostNetwork(
+            mirrored.network,
+            usv.dX,
+            usv.dU,
+            goal_state=goal,
+            feature_map=usv.cost_features,
+            prior_map=usv.cost_prior_residuals,
+            feature_mirror=(1.0,) * 15,
+        )
+    with pytest.raises(ValueError, match="mirror"):
+        dataclasses.replace(
+            mirrored.network, form="weighted", shape_only=False, prior_residuals=False
+        )

@@ -386,6 +386,14 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
                 f"env {env.name!r} has no cost_prior_residuals for network.prior_residuals=True "
                 "(the residuals weighed beside the network)"
             )
+    mirror = None
+    if config.network.mirror:
+        if not hasattr(env, "cost_feature_mirror"):
+            raise ValueError(
+                f"env {env.name!r} has no cost_feature_mirror for network.mirror=True (the "
+                "features' signs under the task's reflection)"
+            )
+        mirror = tuple(float(v) for v in env.cost_feature_mirror)
     return CostNetwork(
         config.network,
         env.dX,
@@ -395,6 +403,7 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
         action_limits=limits,
         goal_state=goal,
         prior_map=prior,
+        feature_mirror=mirror,
     )
 
 

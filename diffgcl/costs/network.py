@@ -137,7 +137,12 @@ class CostNetworkConfig:
     network's term one more weighted residual (module docstring); limit_weight: a factor on the
     fixed actuator-limit term ``‖r_lim(u)‖²`` (``CostNetwork.action_limits``), for costs whose
     learned part is far larger per step than the weighted form's (about 1 per residual on the
-    demos) and would outweigh the limits.
+    demos) and would outweigh the limits; mirror (the ``"neural"`` form): the network's term is
+    averaged over the task's mirror image, ``½(‖r(φ)‖² + ‖r(Mφ)‖²)`` with ``M`` the env's sign
+    flips of the features under reflection (``CostNetwork.feature_mirror``; for the USV the
+    reflection across the course line), so the learned cost cannot prefer one side: the weighted
+    form's squared residuals are symmetric by construction, and without it every network seed
+    learned to pass the pole on one side whatever the situation.
     """
 
     hidden: tuple[int, ...] = (32, 32)
@@ -156,6 +161,7 @@ class CostNetworkConfig:
     squash: str = "tanh"
     prior_residuals: bool = False
     limit_weight: float = 1.0
+    mirror: bool = False
 
     def __post_init__(self):
         if self.form not in ("gram", "neural", "weighted"):
@@ -164,7 +170,7 @@ class CostNetworkConfig:
                 "(‖A (y − y*)‖², zero at a goal) or 'weighted' (learned weights on squared "
                 "residuals)"
             )
-        for name in ("shape_only", "prior_residuals"):
+        for name in ("shape_only", "prior_residuals", "mirror"):
             if getattr(self, name) and self.form != "neural":
                 raise ValueError(
                     f"CostNetworkConfig: {name} is for form 'neural', not {self.form!r}"
@@ -310,7 +316,10 @@ class CostNetwork:
     where the ``"neural"`` form's cost is zero (required by that form, unused by the others).
     ``prior_map``: the env's prior residuals ``ρ(x): [K]`` that the ``"neural"`` form with
     ``prior_residuals`` weighs beside its network (e.g.
-    :meth:`diffgcl.envs.usv.UsvEnv.cost_prior_residuals`); required by that option."""
+    :meth:`diffgcl.envs.usv.UsvEnv.cost_prior_residuals`); required by that option.
+    ``feature_mirror``: ±1 per entry of the feature map's output (of ``x`` without one), the
+    sign each takes when the task is reflected
+    (e.g. :attr:`diffgcl.envs.usv.UsvEnv.cost_feature_mirror`); required by ``mirror``."""
 
     config: CostNetworkConfig
     dX: int
@@ -320,10 +329,25 @@ class CostNetwork:
     action_limits: Callable[[Array], Array] | None = None
     goal_state: tuple[float, ...] | None = None
     prior_map: Callable[[Array], Array] | None = None
+    feature_mirror: tuple[float, ...] | None = None
 
     def __post_init__(self):
         if self.config.form == "neural" and self.goal_state is None:
             raise ValueError("CostNetwork: form 'neural' needs a goal_state (the env's)")
+        if self.config.mirror != (self.feature_mirror is not None):
+            raise ValueError(
+                "CostNetwork: network.mirror needs a feature_mirror (the env's "
+                "cost_feature_mirror), and a feature_mirror needs network.mirror"
+            )
+        if self.feature_mirror is not None:
+            d = self.network_input_dim
+            if len(self.feature_mirror) != d or any(
+                v not in (1.0, -1.0) for v in self.feature_mirror
+            ):
+                raise ValueError(
+                    f"CostNetwork: feature_mirror must be {d} signs (±1), one per network input; "
+                    f"got {self.feature_mirror}"
+                )
         if self.config.prior_residuals != (self.prior_map is not None):
             raise ValueError(
                 "CostNetwork: network.prior_residuals needs a prior_map (the env's "
@@ -491,26 +515,40 @@ class CostNetwork:
         ``f = φ(x)`` (``x`` without a feature map)."""
         if self.config.form == "weighted":
             return jnp.exp(0.5 * self.log_weights(params)) * f / self.residual_scale(params)
-        z = self._network_input_of(params, f, t)
         if self.config.form == "neural":
             goal = self.state_input(jnp.asarray(self.goal_state, f.dtype))
-            y_goal = self._apply_features(params, self._network_input_of(params, goal, t))
-            y, A = self._apply_features(params, z), params.net["A"]
-            if self.config.shape_only:
-                squash = SQUASHES[self.config.squash]
-                y, y_goal = squash(y), squash(y_goal)
-                A = A * (self.config.a_scale * jnp.sqrt(A.shape[0]) / jnp.linalg.norm(A))
-            r = A @ (y - y_goal)
+            r = self._network_residual(params, f, goal, t)
+            if self.feature_mirror is not None:
+                d = self.network_input_dim
+                sign = jnp.asarray(self.feature_mirror, f.dtype)
+                f_m = f.at[:d].multiply(sign)
+                goal_m = goal.at[:d].multiply(sign)
+                r_m = self._network_residual(params, f_m, goal_m, t)
+                r = jnp.concatenate([r, r_m]) / jnp.sqrt(jnp.asarray(2.0, f.dtype))
             if not self.config.prior_residuals:
                 return r
             w = jnp.exp(0.5 * self.log_weights(params))
             d = self.network_input_dim
             prior = w[:-1] * f[d:] / self.residual_scale(params)[d:]
             return jnp.concatenate([prior, w[-1] * r])
+        z = self._network_input_of(params, f, t)
         if self.is_affine:
             M, m = self.affine_residual_map(params)
             return M @ z + m
         return params.net["A"] @ self._apply_features(params, z) + params.net["b"]
+
+    def _network_residual(
+        self, params: CostParams, f: Array, goal: Array, t: Array | int = 0
+    ) -> Array:
+        """The neural form's ``A (y(f) − y(goal))`` (squashed, ``Â``, with ``shape_only``): [F];
+        ``f``, ``goal``: inputs before normalisation."""
+        y_goal = self._apply_features(params, self._network_input_of(params, goal, t))
+        y, A = self._apply_features(params, self._network_input_of(params, f, t)), params.net["A"]
+        if self.config.shape_only:
+            squash = SQUASHES[self.config.squash]
+            y, y_goal = squash(y), squash(y_goal)
+            A = A * (self.config.a_scale * jnp.sqrt(A.shape[0]) / jnp.linalg.norm(A))
+        return A @ (y - y_goal)
 
     def residual_scale(self, params: CostParams) -> Array:
         """``rms_k = sqrt(var_k + mean_k²)`` of the residuals on the data seen (floored at

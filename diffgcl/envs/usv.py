@@ -332,6 +332,31 @@ class UsvEnv:
             ]
         )
 
+    @property
+    def cost_feature_mirror(self) -> tuple[float, ...]:
+        """The sign each of :meth:`cost_features` takes when the situation is reflected across
+        the course line (world y, heading, sway, yaw rate, nozzle and the pole's y negated): the
+        pole's bearing across the hull, the cross-track error, sin ψ, sway, yaw rate and nozzle
+        flip; the rest keep their sign. For the neural cost's ``network.mirror``."""
+        return (
+            1.0,
+            1.0,
+            1.0,
+            1.0,
+            1.0,
+            -1.0,
+            1.0,
+            -1.0,
+            -1.0,
+            1.0,
+            1.0,
+            1.0,
+            -1.0,
+            -1.0,
+            1.0,
+            -1.0,
+        )
+
     def cost_goal_state(self) -> Array:
         """Where the task is done, for the neural cost's anchor: [11]. On the course line at
         cruise speed, heading along it, the jets at the thrust that holds that speed, the pole
