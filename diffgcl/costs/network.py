@@ -140,9 +140,10 @@ class CostNetworkConfig:
     demos) and would outweigh the limits; mirror (the ``"neural"`` form): the network's term is
     averaged over the task's mirror image, ``½(‖r(φ)‖² + ‖r(Mφ)‖²)`` with ``M`` the env's sign
     flips of the features under reflection (``CostNetwork.feature_mirror``; for the USV the
-    reflection across the course line), so the learned cost cannot prefer one side: the weighted
-    form's squared residuals are symmetric by construction, and without it every network seed
-    learned to pass the pole on one side whatever the situation.
+    reflection across the course line), so the learned cost cannot prefer one side, as the
+    weighted form's squared residuals cannot. Unmirrored, each USV network seed passes the pole
+    on one side whatever the situation; mirrored, the runs still kept to one side and passed
+    closer (docs/usv_cost_form.md), so the USV presets leave it off.
     """
 
     hidden: tuple[int, ...] = (32, 32)
