@@ -338,24 +338,8 @@ class UsvEnv:
         the course line (world y, heading, sway, yaw rate, nozzle and the pole's y negated): the
         pole's bearing across the hull, the cross-track error, sin ψ, sway, yaw rate and nozzle
         flip; the rest keep their sign. For the neural cost's ``network.mirror``."""
-        return (
-            1.0,
-            1.0,
-            1.0,
-            1.0,
-            1.0,
-            -1.0,
-            1.0,
-            -1.0,
-            -1.0,
-            1.0,
-            1.0,
-            1.0,
-            -1.0,
-            -1.0,
-            1.0,
-            -1.0,
-        )
+        flipped = (5, 7, 8, 12, 13, 15)  # across-bearing, cross-track, sin ψ, sway, yaw, nozzle
+        return tuple(-1.0 if i in flipped else 1.0 for i in range(16))
 
     def cost_goal_state(self) -> Array:
         """Where the task is done, for the neural cost's anchor: [11]. On the course line at
