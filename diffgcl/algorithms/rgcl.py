@@ -360,40 +360,33 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
     ``network.prior_residuals`` weighs ``env.cost_prior_residuals`` beside it; an env with
     ``action_limit_residuals`` gets its actuator-limit barrier as a fixed part of the cost)."""
     dtype = jnp.asarray(env.initial_states()).dtype
+    net = config.network
     features = None
-    if config.network.features == "env":
-        name = "cost_residuals" if config.network.form == "weighted" else "cost_features"
-        if not hasattr(env, name):
-            raise ValueError(
-                f"env {env.name!r} has no {name} for network.features='env' "
-                f"(form {config.network.form!r})"
-            )
-        features = getattr(env, name)
+    if net.features == "env":
+        name = "cost_residuals" if net.form == "weighted" else "cost_features"
+        features = _env_part(env, name, f"network.features='env' (form {net.form!r})")
     limits = getattr(env, "action_limit_residuals", None)
     goal = None
-    if config.network.form == "neural":
-        if not hasattr(env, "cost_goal_state"):
-            raise ValueError(
-                f"env {env.name!r} has no cost_goal_state for network.form='neural' (the state "
-                "where the cost is zero)"
-            )
-        goal = tuple(float(v) for v in np.asarray(env.cost_goal_state()))  # hashable
+    if net.form == "neural":
+        goal_state = _env_part(
+            env, "cost_goal_state", "network.form='neural' (the state where the cost is zero)"
+        )
+        goal = tuple(float(v) for v in np.asarray(goal_state()))  # hashable
     prior = None
-    if config.network.prior_residuals:
-        prior = getattr(env, "cost_prior_residuals", None)
-        if prior is None:
-            raise ValueError(
-                f"env {env.name!r} has no cost_prior_residuals for network.prior_residuals=True "
-                "(the residuals weighed beside the network)"
-            )
+    if net.prior_residuals:
+        prior = _env_part(
+            env,
+            "cost_prior_residuals",
+            "network.prior_residuals=True (the residuals weighed beside the network)",
+        )
     mirror = None
-    if config.network.mirror:
-        if not hasattr(env, "cost_feature_mirror"):
-            raise ValueError(
-                f"env {env.name!r} has no cost_feature_mirror for network.mirror=True (the "
-                "features' signs under the task's reflection)"
-            )
-        mirror = tuple(float(v) for v in env.cost_feature_mirror)
+    if net.mirror:
+        signs = _env_part(
+            env,
+            "cost_feature_mirror",
+            "network.mirror=True (the features' signs under the task's reflection)",
+        )
+        mirror = tuple(float(v) for v in signs)
     return CostNetwork(
         config.network,
         env.dX,
@@ -405,6 +398,14 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
         prior_map=prior,
         feature_mirror=mirror,
     )
+
+
+def _env_part(env: Env, name: str, needed_for: str):
+    """``env.<name>``, or a ValueError naming the env, the missing part and the option that
+    needs it."""
+    if not hasattr(env, name):
+        raise ValueError(f"env {env.name!r} has no {name} for {needed_for}")
+    return getattr(env, name)
 
 
 def became_non_finite(old, new) -> Array:

@@ -517,10 +517,10 @@ class CostNetwork:
         if self.config.form == "weighted":
             return jnp.exp(0.5 * self.log_weights(params)) * f / self.residual_scale(params)
         if self.config.form == "neural":
+            d = self.network_input_dim
             goal = self.state_input(jnp.asarray(self.goal_state, f.dtype))
             r = self._network_residual(params, f, goal, t)
             if self.feature_mirror is not None:
-                d = self.network_input_dim
                 sign = jnp.asarray(self.feature_mirror, f.dtype)
                 f_m = f.at[:d].multiply(sign)
                 goal_m = goal.at[:d].multiply(sign)
@@ -529,7 +529,6 @@ class CostNetwork:
             if not self.config.prior_residuals:
                 return r
             w = jnp.exp(0.5 * self.log_weights(params))
-            d = self.network_input_dim
             prior = w[:-1] * f[d:] / self.residual_scale(params)[d:]
             return jnp.concatenate([prior, w[-1] * r])
         z = self._network_input_of(params, f, t)
