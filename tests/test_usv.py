@@ -596,3 +596,120 @@ def test_mirrored_neural_cost_cannot_prefer_a_side():
         dataclasses.replace(
             mirrored.network, form="weighted", shape_only=False, prior_residuals=False
         )
+
+
+def test_cost_clearance_features_read_the_clearance():
+    """``UsvEnv.cost_clearance_features``: the first is the saturated clearance itself and every
+    one is a function of the clearance alone (the learned barrier's gate must not see them)."""
+    from diffgcl.envs.usv import SATURATION_RANGE
+
+    usv = make_usv_env(horizon=10)
+    first, *rest = usv.cost_clearance_features
+    rng = np.random.default_rng(5)
+    for x in usv.initial_states():
+        x = x.at[:3].add(jnp.asarray(rng.normal(size=3) * [30, 15, 0.5]))
+        f, c = np.asarray(usv.cost_features(x)), float(usv.clearance(x))
+        np.testing.assert_allclose(f[first], SATURATION_RANGE * np.tanh(c / SATURATION_RANGE))
+        ells = sorted(float(-max(c, 0.0) / np.log(f[i])) for i in rest)  # exp(−c/ℓ)
+        np.testing.assert_allclose(ells, [5.0, 20.0], rtol=1e-9)
+
+
+def _barrier_network(**network):
+    import dataclasses
+
+    from diffgcl.algorithms.presets import usv_neural
+    from diffgcl.algorithms.rgcl import make_network
+
+    usv = make_usv_env(horizon=10)
+    base = usv_neural()
+    margins = (2.5, 5.0, 10.0, 20.0)
+    cfg = dataclasses.replace(
+        base, network=dataclasses.replace(base.network, barrier_margins=margins, **network)
+    )
+    net = make_network(cfg, usv)
+    X = usv.initial_states()
+    params = net.init(jax.random.PRNGKey(2))
+    return usv, net, params.replace(norm=net.fit_normaliser(X)), np.asarray(margins)
+
+
+def test_learned_barrier_is_the_soft_hinge_on_the_clearance_at_the_start():
+    """``network.barrier_margins``: at initialisation (gate 1) the network's term is
+    ``Σ_k (s·softplus((m_k − c)/s))² / K`` of the clearance feature ``c``, checked against numpy
+    from the feature itself, over clearances inside, near and far beyond the margins."""
+    usv, net, params, margins = _barrier_network()
+    s = net.config.barrier_softness
+    x0 = usv.initial_states()[0]
+    f0 = net.state_input(x0)
+    for c in (-1.0, 0.0, 1.5, 4.0, 9.0, 19.0, 35.0, 59.0):
+        f = f0.at[0].set(c)
+        r = np.asarray(net.residual_of_input(params, f))[-len(margins) :]
+        w_net = float(np.exp(0.5 * np.asarray(net.log_weights(params))[-1]))
+        hinge = s * np.logaddexp(0.0, (margins - c) / s)  # softplus
+        np.testing.assert_allclose(r, w_net * hinge / np.sqrt(len(margins)), rtol=1e-10)
+
+
+def test_learned_barrier_cannot_open_a_hole_at_the_pole():
+    """Whatever the gate learns (random, large network weights), the network's term rises
+    monotonically as the clearance falls, ignores the other clearance features, stays within a
+    factor e² per margin of the gate-1 barrier, and its Gauss–Newton expansion is PSD; the
+    options without their env part, or on another form, are refused by name."""
+    import dataclasses
+    import functools
+
+    from diffgcl.costs.network import CostNetwork
+
+    usv, net, params, margins = _barrier_network()
+    K = len(margins)
+    keys = jax.random.split(jax.random.PRNGKey(7), 3)
+    leaves, tree = jax.tree.flatten(params.net["features"])
+    noisy = [
+        3.0 * jax.random.normal(k, v.shape, v.dtype)
+        for k, v in zip(jax.random.split(keys[0], len(leaves)), leaves, strict=True)
+    ]
+    gate_net = dict(params.net)
+    gate_net["features"] = jax.tree.unflatten(tree, noisy)
+    gate_net["A"] = 3.0 * jax.random.normal(keys[1], params.net["A"].shape)
+    gate_net["b"] = jax.random.normal(keys[2], (K,))
+    gated = params.replace(net=gate_net)
+
+    def barrier(p, f):
+        return np.asarray(net.residual_of_input(p, f))[-K:]
+
+    rng = np.random.default_rng(11)
+    X = usv.initial_states()
+    ratios = []
+    for x in X:
+        x = x.at[:3].add(jnp.asarray(rng.normal(size=3) * [30, 15, 0.5]))
+        f = net.state_input(x)
+        costs = []
+        for c in np.linspace(40.0, -1.0, 42):
+            fc = f.at[0].set(c)
+            r = barrier(gated, fc)
+            costs.append(float(r @ r))
+            other = fc.at[2].set(rng.uniform()).at[3].set(rng.uniform())  # proximities
+            np.testing.assert_allclose(barrier(gated, other), r, rtol=1e-12)
+            ratios.append(r / np.maximum(barrier(params, fc), 1e-300))
+        assert np.all(np.diff(costs) >= 0.0) and costs[-1] > 10.0 * costs[0]
+    ratios = np.concatenate(ratios)
+    assert np.all((ratios > np.exp(-1.0) * (1 - 1e-9)) & (ratios < np.exp(1.0) * (1 + 1e-9)))
+    assert ratios.max() / ratios.min() > 2.0  # the gate does vary with the situation
+    quad = net.expand(gated, jnp.stack([X[3]] * 3), jnp.zeros((2, usv.dU), X.dtype))
+    assert np.all(np.linalg.eigvalsh(np.asarray(quad.l_xx)) > -1e-9)
+
+    build = functools.partial(
+        CostNetwork,
+        net.config,
+        usv.dX,
+        usv.dU,
+        goal_state=tuple(usv.cost_goal_state().tolist()),
+        feature_map=usv.cost_features,
+        prior_map=usv.cost_prior_residuals,
+    )
+    with pytest.raises(ValueError, match="clearance_features"):
+        build()
+    with pytest.raises(ValueError, match=r"distinct indices in \[0, 16\)"):
+        build(clearance_features=(16,))
+    with pytest.raises(ValueError, match="barrier_margins is for form 'neural'"):
+        dataclasses.replace(net.config, form="weighted", shape_only=False, prior_residuals=False)
+    with pytest.raises(ValueError, match="must be > 0"):
+        dataclasses.replace(net.config, barrier_margins=(5.0, 0.0))

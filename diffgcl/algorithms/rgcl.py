@@ -357,7 +357,8 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
     """The cost network of ``config`` for ``env`` (parameters in the run's float dtype; with
     ``network.features == "env"`` it reads ``env.cost_features``, or ``env.cost_residuals`` for
     the weighted form; the neural form is anchored at ``env.cost_goal_state()`` and with
-    ``network.prior_residuals`` weighs ``env.cost_prior_residuals`` beside it; an env with
+    ``network.prior_residuals`` weighs ``env.cost_prior_residuals`` beside it, with
+    ``network.barrier_margins`` reads ``env.cost_clearance_features``; an env with
     ``action_limit_residuals`` gets its actuator-limit barrier as a fixed part of the cost)."""
     dtype = jnp.asarray(env.initial_states()).dtype
     net = config.network
@@ -387,6 +388,14 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
             "network.mirror=True (the features' signs under the task's reflection)",
         )
         mirror = tuple(float(v) for v in signs)
+    clearance = None
+    if net.barrier_margins:
+        indices = _env_part(
+            env,
+            "cost_clearance_features",
+            "network.barrier_margins (the features that read the clearance, the barrier's input)",
+        )
+        clearance = tuple(int(i) for i in indices)
     return CostNetwork(
         config.network,
         env.dX,
@@ -397,6 +406,7 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
         goal_state=goal,
         prior_map=prior,
         feature_mirror=mirror,
+        clearance_features=clearance,
     )
 
 

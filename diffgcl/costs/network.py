@@ -62,6 +62,20 @@ not fed to it. The prior keeps the cost growing without bound away from the cour
 bounded (``shape_only``) network is flat, and leaves what the prior does not say — for the
 USV, keeping clear of the pole — to the network.
 
+Learned barrier (``CostNetworkConfig.barrier_margins``, neural form): the network's term is a
+keep-clear cost that rises monotonically as the clearance ``c`` falls, whatever GCL learns, and
+the network learns its margins and where it matters:
+``r_k = exp(tanh(A_k y(z̃) + b_k)) · s·softplus((m_k − c)/s) / √K``, ``k = 1..K``. ``c`` is the
+env's clearance feature (``CostNetwork.clearance_features``, the first of them, unnormalised);
+``m_k = e^{log m_k}`` are learned margins and ``s`` the hinge's softness; ``y`` is the feature
+network on the normalised features ``z̃`` with every clearance feature zeroed, so the gate
+``exp(tanh(·)) ∈ [1/e, e]`` cannot open a hole at the pole: it can only make a margin weigh up
+to e² more or less per step in some situations (the pole astern, the boat closing fast).
+``A: [K, F]`` and ``b`` start at 0, so the barrier starts a function of the clearance alone.
+Unlike the anchored network, which has to learn that the pole is to be avoided at all (and on
+the USV learned holes beside it and a side per seed), the barrier says only *that* nearer is
+costlier, and learns how near and how much.
+
 The network is flax linen; everything outside it (``CostParams``, :class:`CostNetwork`) is plain,
 so the cost is a pure function of an explicit parameter pytree that jit/vmap/scan carry around.
 """
@@ -143,7 +157,11 @@ class CostNetworkConfig:
     reflection across the course line), so the learned cost cannot prefer one side, as the
     weighted form's squared residuals cannot. Unmirrored, each USV network seed passes the pole
     on one side whatever the situation; mirrored, the runs still kept to one side and passed
-    closer (docs/usv_cost_form.md), so the USV presets leave it off.
+    closer (docs/usv_cost_form.md), so the USV presets leave it off; barrier_margins (the
+    ``"neural"`` form): when not empty, the network's term is a learned keep-clear barrier
+    instead of the anchored Gram form (module docstring), one unit per margin, starting at these
+    clearances (in the clearance feature's units, m for the USV) and learned from there;
+    barrier_softness: the width over which each unit's hinge is rounded (same units).
     """
 
     hidden: tuple[int, ...] = (32, 32)
@@ -163,6 +181,8 @@ class CostNetworkConfig:
     prior_residuals: bool = False
     limit_weight: float = 1.0
     mirror: bool = False
+    barrier_margins: tuple[float, ...] = ()
+    barrier_softness: float = 1.0
 
     def __post_init__(self):
         if self.form not in ("gram", "neural", "weighted"):
@@ -171,7 +191,7 @@ class CostNetworkConfig:
                 "(‖A (y − y*)‖², zero at a goal) or 'weighted' (learned weights on squared "
                 "residuals)"
             )
-        for name in ("shape_only", "prior_residuals", "mirror"):
+        for name in ("shape_only", "prior_residuals", "mirror", "barrier_margins"):
             if getattr(self, name) and self.form != "neural":
                 raise ValueError(
                     f"CostNetworkConfig: {name} is for form 'neural', not {self.form!r}"
@@ -184,6 +204,11 @@ class CostNetworkConfig:
         if self.squash not in SQUASHES:
             raise ValueError(
                 f"CostNetworkConfig: squash {self.squash!r}; choose one of {sorted(SQUASHES)}"
+            )
+        if any(not m > 0.0 for m in self.barrier_margins) or not self.barrier_softness > 0.0:
+            raise ValueError(
+                "CostNetworkConfig: barrier_margins and barrier_softness must be > 0, got "
+                f"{self.barrier_margins} and {self.barrier_softness}"
             )
         if not self.limit_weight > 0.0:
             raise ValueError(
@@ -320,7 +345,10 @@ class CostNetwork:
     :meth:`diffgcl.envs.usv.UsvEnv.cost_prior_residuals`); required by that option.
     ``feature_mirror``: ±1 per entry of the feature map's output (of ``x`` without one), the
     sign each takes when the task is reflected
-    (e.g. :attr:`diffgcl.envs.usv.UsvEnv.cost_feature_mirror`); required by ``mirror``."""
+    (e.g. :attr:`diffgcl.envs.usv.UsvEnv.cost_feature_mirror`); required by ``mirror``.
+    ``clearance_features``: indices into the feature map's output of the features that are
+    functions of the clearance to the obstacle, the first being the clearance itself (e.g.
+    :attr:`diffgcl.envs.usv.UsvEnv.cost_clearance_features`); required by ``barrier_margins``."""
 
     config: CostNetworkConfig
     dX: int
@@ -331,6 +359,7 @@ class CostNetwork:
     goal_state: tuple[float, ...] | None = None
     prior_map: Callable[[Array], Array] | None = None
     feature_mirror: tuple[float, ...] | None = None
+    clearance_features: tuple[int, ...] | None = None
 
     def __post_init__(self):
         if self.config.form == "neural" and self.goal_state is None:
@@ -348,6 +377,19 @@ class CostNetwork:
                 raise ValueError(
                     f"CostNetwork: feature_mirror must be {d} signs (±1), one per network input; "
                     f"got {self.feature_mirror}"
+                )
+        if bool(self.config.barrier_margins) != (self.clearance_features is not None):
+            raise ValueError(
+                "CostNetwork: network.barrier_margins needs clearance_features (the env's "
+                "cost_clearance_features), and clearance_features need network.barrier_margins"
+            )
+        if self.clearance_features is not None:
+            d = self.network_input_dim
+            idx = self.clearance_features
+            if not idx or any(not 0 <= i < d for i in idx) or len(set(idx)) != len(idx):
+                raise ValueError(
+                    f"CostNetwork: clearance_features must be distinct indices in [0, {d}) of "
+                    f"the network's input, the clearance first; got {idx}"
                 )
         if self.config.prior_residuals != (self.prior_map is not None):
             raise ValueError(
@@ -435,6 +477,11 @@ class CostNetwork:
             "b": jnp.zeros(F, self.param_dtype),
             "log_w_u": jnp.log(jnp.asarray(cfg.action_weight, self.param_dtype)),
         }
+        if cfg.barrier_margins:  # the gate starts at 1: a barrier in the clearance alone
+            K = len(cfg.barrier_margins)
+            net["A"] = jnp.zeros((K, F), self.param_dtype)
+            net["b"] = jnp.zeros(K, self.param_dtype)
+            net["log_margin"] = jnp.log(jnp.asarray(cfg.barrier_margins, self.param_dtype))
         if cfg.prior_residuals:  # the prior residuals' log weights, then the network's
             net["log_w"] = jnp.zeros(self.prior_dim + 1, self.param_dtype)
         return CostParams(
@@ -540,8 +587,11 @@ class CostNetwork:
     def _network_residual(
         self, params: CostParams, f: Array, goal: Array, t: Array | int = 0
     ) -> Array:
-        """The neural form's ``A (y(f) − y(goal))`` (squashed, ``Â``, with ``shape_only``): [F];
+        """The neural form's ``A (y(f) − y(goal))`` (squashed, ``Â``, with ``shape_only``): [F],
+        or with ``barrier_margins`` the learned barrier at ``f`` (:meth:`_barrier_residual`);
         ``f``, ``goal``: inputs before normalisation."""
+        if self.config.barrier_margins:
+            return self._barrier_residual(params, f, t)
         y_goal = self._apply_features(params, self._network_input_of(params, goal, t))
         y, A = self._apply_features(params, self._network_input_of(params, f, t)), params.net["A"]
         if self.config.shape_only:
@@ -549,6 +599,22 @@ class CostNetwork:
             y, y_goal = squash(y), squash(y_goal)
             A = A * (self.config.a_scale * jnp.sqrt(A.shape[0]) / jnp.linalg.norm(A))
         return A @ (y - y_goal)
+
+    def _barrier_residual(self, params: CostParams, f: Array, t: Array | int = 0) -> Array:
+        """``exp(tanh(A y(z̃) + b)) ⊙ s·softplus((m − c)/s) / √K``: [K] (module docstring);
+        ``f`` before normalisation."""
+        idx = jnp.asarray(self.clearance_features)
+        c = f[idx[0]]
+        z = self._network_input_of(params, f, t).at[idx].set(0.0)
+        net = params.net
+        gate = jnp.exp(jnp.tanh(net["A"] @ self._apply_features(params, z) + net["b"]))
+        s = jnp.asarray(self.config.barrier_softness, f.dtype)
+        depth = s * jax.nn.softplus((jnp.exp(net["log_margin"]) - c) / s)
+        return gate * depth / jnp.sqrt(jnp.asarray(len(self.config.barrier_margins), f.dtype))
+
+    def barrier_margins(self, params: CostParams) -> Array:
+        """The learned barrier's margins ``m_k``: [K] (``barrier_margins`` on)."""
+        return jnp.exp(params.net["log_margin"])
 
     def residual_scale(self, params: CostParams) -> Array:
         """``rms_k = sqrt(var_k + mean_k²)`` of the residuals on the data seen (floored at

@@ -341,6 +341,13 @@ class UsvEnv:
         flipped = (5, 7, 8, 12, 13, 15)  # across-bearing, cross-track, sin ψ, sway, yaw, nozzle
         return tuple(-1.0 if i in flipped else 1.0 for i in range(16))
 
+    @property
+    def cost_clearance_features(self) -> tuple[int, ...]:
+        """The indices of :meth:`cost_features` that are functions of the pole's clearance: the
+        saturated clearance (m, first: the learned barrier's input) and the two proximities.
+        For the neural cost's ``network.barrier_margins``, whose gate must not read them."""
+        return (0, 2, 3)
+
     def cost_goal_state(self) -> Array:
         """Where the task is done, for the neural cost's anchor: [11]. On the course line at
         cruise speed, heading along it, the jets at the thrust that holds that speed, the pole

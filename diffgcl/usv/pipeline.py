@@ -445,6 +445,9 @@ def run_usv(
             summary["rgcl"]["cost_weights"] = learned_cost_weights(
                 rgcl.network, state.cost.params, names
             )
+        if rgcl.network.config.barrier_margins:  # per seed, m
+            margins = jax.vmap(rgcl.network.barrier_margins)(state.cost.params)
+            summary["rgcl"]["barrier_margins"] = np.asarray(margins).tolist()
         run.rgcl_state, run.rgcl = state, rgcl
         judge("rgcl", rgcl.policy_phases.policy, state.policy.params)
 
