@@ -634,8 +634,9 @@ def _barrier_network(**network):
 
 def test_learned_barrier_is_the_soft_hinge_on_the_clearance_at_the_start():
     """``network.barrier_margins``: at initialisation (gate 1) the network's term is
-    ``Σ_k (s·softplus((m_k − c)/s))² / K`` of the clearance feature ``c``, checked against numpy
-    from the feature itself, over clearances inside, near and far beyond the margins."""
+    ``Σ_k (s·softplus((m_k − c)/s) / m_k)² / K`` of the clearance feature ``c``, checked
+    against numpy from the feature itself, over clearances inside, near and far beyond the
+    margins."""
     usv, net, params, margins = _barrier_network()
     s = net.config.barrier_softness
     x0 = usv.initial_states()[0]
@@ -644,7 +645,7 @@ def test_learned_barrier_is_the_soft_hinge_on_the_clearance_at_the_start():
         f = f0.at[0].set(c)
         r = np.asarray(net.residual_of_input(params, f))[-len(margins) :]
         w_net = float(np.exp(0.5 * np.asarray(net.log_weights(params))[-1]))
-        hinge = s * np.logaddexp(0.0, (margins - c) / s)  # softplus
+        hinge = s * np.logaddexp(0.0, (margins - c) / s) / margins  # softplus, as a fraction
         np.testing.assert_allclose(r, w_net * hinge / np.sqrt(len(margins)), rtol=1e-10)
 
 
@@ -713,3 +714,23 @@ def test_learned_barrier_cannot_open_a_hole_at_the_pole():
         dataclasses.replace(net.config, form="weighted", shape_only=False, prior_residuals=False)
     with pytest.raises(ValueError, match="must be > 0"):
         dataclasses.replace(net.config, barrier_margins=(5.0, 0.0))
+
+
+def test_learned_barrier_margins_move_only_when_learned():
+    """``barrier_learn_margins``: off (the default), the cost has no gradient in the margins, so
+    GCL leaves them where they start; on, it has (for a state inside the margins)."""
+    for learn in (False, True):
+        usv, net, params, margins = _barrier_network(barrier_learn_margins=learn)
+        x = usv.initial_states()[0]
+        f = net.state_input(x).at[0].set(4.0)  # inside the 5, 10 and 20 m margins
+
+        def cost(log_margin, f=f, net=net, params=params):
+            p = params.replace(net={**params.net, "log_margin": log_margin})
+            r = net.residual_of_input(p, f)
+            return r @ r
+
+        g = np.asarray(jax.grad(cost)(params.net["log_margin"]))
+        if learn:
+            assert np.all(np.abs(g[1:]) > 1e-6)
+        else:
+            np.testing.assert_array_equal(g, 0.0)

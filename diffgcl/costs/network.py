@@ -63,18 +63,21 @@ bounded (``shape_only``) network is flat, and leaves what the prior does not say
 USV, keeping clear of the pole — to the network.
 
 Learned barrier (``CostNetworkConfig.barrier_margins``, neural form): the network's term is a
-keep-clear cost that rises monotonically as the clearance ``c`` falls, whatever GCL learns, and
-the network learns its margins and where it matters:
-``r_k = exp(tanh(A_k y(z̃) + b_k)) · s·softplus((m_k − c)/s) / √K``, ``k = 1..K``. ``c`` is the
-env's clearance feature (``CostNetwork.clearance_features``, the first of them, unnormalised);
-``m_k = e^{log m_k}`` are learned margins and ``s`` the hinge's softness; ``y`` is the feature
-network on the normalised features ``z̃`` with every clearance feature zeroed, so the gate
-``exp(tanh(·)) ∈ [1/e, e]`` cannot open a hole at the pole: it can only make a margin weigh up
-to e² more or less per step in some situations (the pole astern, the boat closing fast).
-``A: [K, F]`` and ``b`` start at 0, so the barrier starts a function of the clearance alone.
-Unlike the anchored network, which has to learn that the pole is to be avoided at all (and on
-the USV learned holes beside it and a side per seed), the barrier says only *that* nearer is
-costlier, and learns how near and how much.
+keep-clear cost that rises monotonically as the clearance ``c`` falls, whatever GCL learns; the
+network learns where and how much it matters:
+``r_k = exp(tanh(A_k y(z̃) + b_k)) · s·softplus((m_k − c)/s) / (m_k √K)``, ``k = 1..K``. ``c`` is
+the env's clearance feature (``CostNetwork.clearance_features``, the first of them,
+unnormalised); ``m_k`` are the margins (fixed, or learned as ``log m_k`` with
+``barrier_learn_margins``) and ``s`` the hinge's softness. ``y`` is the feature network on the
+normalised features ``z̃`` with every clearance feature zeroed, so the gate
+``exp(tanh(·)) ∈ [1/e, e]`` cannot open a hole at the obstacle: it can only make a margin weigh
+up to e² more or less per step in some situations (the pole astern, the boat closing fast).
+``A: [K, F]`` and ``b`` start at 0, so the barrier starts as a function of the clearance alone.
+Each unit reads the depth inside its margin as a fraction of the margin (about 1 at the
+obstacle's edge), so a unit's scale does not grow with its margin; the term's overall scale is
+its learned weight. Unlike the anchored network, which has to learn that the pole is to be
+avoided at all (on the USV it learned holes beside the pole and a side per seed), the barrier
+fixes only *that* nearer is costlier.
 
 The network is flax linen; everything outside it (``CostParams``, :class:`CostNetwork`) is plain,
 so the cost is a pure function of an explicit parameter pytree that jit/vmap/scan carry around.
@@ -160,8 +163,11 @@ class CostNetworkConfig:
     closer (docs/usv_cost_form.md), so the USV presets leave it off; barrier_margins (the
     ``"neural"`` form): when not empty, the network's term is a learned keep-clear barrier
     instead of the anchored Gram form (module docstring), one unit per margin, starting at these
-    clearances (in the clearance feature's units, m for the USV) and learned from there;
-    barrier_softness: the width over which each unit's hinge is rounded (same units).
+    clearances (in the clearance feature's units, m for the USV); barrier_softness: the width
+    over which each unit's hinge is rounded (same units); barrier_learn_margins: GCL moves the
+    margins too (off: they stay where they start, and GCL learns the gate and the term's
+    weight). Learned, the USV's margins ran off to both ends (0.4 m and 175–280 m) and the runs
+    passed at 0.1× the demos' clearance (docs/usv_cost_form.md).
     """
 
     hidden: tuple[int, ...] = (32, 32)
@@ -183,6 +189,7 @@ class CostNetworkConfig:
     mirror: bool = False
     barrier_margins: tuple[float, ...] = ()
     barrier_softness: float = 1.0
+    barrier_learn_margins: bool = False
 
     def __post_init__(self):
         if self.form not in ("gram", "neural", "weighted"):
@@ -601,7 +608,7 @@ class CostNetwork:
         return A @ (y - y_goal)
 
     def _barrier_residual(self, params: CostParams, f: Array, t: Array | int = 0) -> Array:
-        """``exp(tanh(A y(z̃) + b)) ⊙ s·softplus((m − c)/s) / √K``: [K] (module docstring);
+        """``exp(tanh(A y(z̃) + b)) ⊙ s·softplus((m − c)/s) / (m √K)``: [K] (module docstring);
         ``f`` before normalisation."""
         idx = jnp.asarray(self.clearance_features)
         c = f[idx[0]]
@@ -609,7 +616,11 @@ class CostNetwork:
         net = params.net
         gate = jnp.exp(jnp.tanh(net["A"] @ self._apply_features(params, z) + net["b"]))
         s = jnp.asarray(self.config.barrier_softness, f.dtype)
-        depth = s * jax.nn.softplus((jnp.exp(net["log_margin"]) - c) / s)
+        log_margin = net["log_margin"]
+        if not self.config.barrier_learn_margins:
+            log_margin = jax.lax.stop_gradient(log_margin)
+        margin = jnp.exp(log_margin)
+        depth = s * jax.nn.softplus((margin - c) / s) / margin
         return gate * depth / jnp.sqrt(jnp.asarray(len(self.config.barrier_margins), f.dtype))
 
     def barrier_margins(self, params: CostParams) -> Array:
