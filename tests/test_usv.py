@@ -334,27 +334,15 @@ def test_action_limit_residuals_are_the_expert_costs_limit_barrier():
     np.testing.assert_allclose(float(r @ r), expected, rtol=1e-4)
 
 
-def _anchored_neural():
-    """``usv_neural`` with the free network anchored at the goal in place of the learned
-    barrier (``network.barrier_margins=()``): the form the tests below are about."""
-    import dataclasses
-
-    from diffgcl.algorithms.presets import usv_neural
-
-    config = usv_neural()
-    return dataclasses.replace(
-        config, network=dataclasses.replace(config.network, barrier_margins=())
-    )
-
-
 def test_neural_cost_is_zero_at_the_goal_and_reads_bounded_features():
     """The neural form (``‖A (y(z) − y(z*))‖²`` on the task features): zero at the env's goal
     state and at any state whose features equal the goal's (the pole further astern), positive
     elsewhere, with a PSD Gauss-Newton expansion; the features stay bounded far from the pole."""
+    from diffgcl.algorithms.presets import usv_neural
     from diffgcl.algorithms.rgcl import make_network
 
     usv = make_usv_env(horizon=10)
-    net = make_network(_anchored_neural(), usv)
+    net = make_network(usv_neural(), usv)
     params = net.init(jax.random.PRNGKey(0))
     params = params.replace(norm=net.fit_normaliser(usv.initial_states()))
     goal = usv.cost_goal_state()
@@ -372,7 +360,7 @@ def test_neural_cost_is_zero_at_the_goal_and_reads_bounded_features():
     with pytest.raises(ValueError, match="goal_state"):
         from diffgcl.costs.network import CostNetwork
 
-        CostNetwork(_anchored_neural().network, usv.dX, usv.dU)
+        CostNetwork(usv_neural().network, usv.dX, usv.dU)
 
 
 def test_shape_only_neural_cost_has_a_fixed_scale():
@@ -381,10 +369,11 @@ def test_shape_only_neural_cost_has_a_fixed_scale():
     never exceeds ``‖Â‖_F² · max‖tanh y − tanh y*‖² = (a_scale² F)(4F)`` per step."""
     import dataclasses
 
+    from diffgcl.algorithms.presets import usv_neural
     from diffgcl.algorithms.rgcl import make_network
 
     usv = make_usv_env(horizon=10)
-    config = _anchored_neural()
+    config = usv_neural()
     config = dataclasses.replace(
         config, network=dataclasses.replace(config.network, shape_only=True, prior_residuals=False)
     )
@@ -455,11 +444,12 @@ def test_neural_cost_with_prior_residuals_weighs_the_course_beside_the_network()
     refused."""
     import dataclasses
 
+    from diffgcl.algorithms.presets import usv_neural
     from diffgcl.algorithms.rgcl import make_network
     from diffgcl.costs.network import CostNetwork
 
     usv = make_usv_env(horizon=10)
-    base = _anchored_neural()
+    base = usv_neural()
     shape = dataclasses.replace(base.network, shape_only=True, prior_residuals=False)
     prior = dataclasses.replace(shape, prior_residuals=True)
     net = make_network(dataclasses.replace(base, network=prior), usv)
@@ -564,11 +554,12 @@ def test_mirrored_neural_cost_cannot_prefer_a_side():
     import dataclasses
     import functools
 
+    from diffgcl.algorithms.presets import usv_neural
     from diffgcl.algorithms.rgcl import make_network
     from diffgcl.costs.network import CostNetwork
 
     usv = make_usv_env(horizon=10)
-    base = _anchored_neural()
+    base = usv_neural()
     mirrored = dataclasses.replace(base, network=dataclasses.replace(base.network, mirror=True))
     net, plain = make_network(mirrored, usv), make_network(base, usv)
     X = usv.initial_states()

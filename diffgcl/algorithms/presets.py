@@ -294,31 +294,19 @@ def usv(cost: str = "weighted") -> RGCLConfig:
 
 def usv_neural() -> RGCLConfig:
     """The USV task with a neural learned cost: :func:`usv` with, in place of the clearance
-    margins, a learned keep-clear barrier beside the course residuals
+    margins, a cost network ``‖Â (tanh y(z) − tanh y(z*))‖²`` beside the course residuals
     (:meth:`diffgcl.envs.usv.UsvEnv.cost_prior_residuals`), each term with a learned weight
-    (``network.prior_residuals``). The barrier (``network.barrier_margins``,
-    :mod:`diffgcl.costs.network`) rises as the pole's clearance falls, in four units whose
-    margins spread geometrically from 2.5 to 20 m (not chosen from the demos), each gated by a
-    32 × 32 ReLU network on the task features with the clearance hidden from it
-    (:meth:`diffgcl.envs.usv.UsvEnv.cost_features`: the pole's distance ahead, bearing and
-    closing speed; cross-track and heading error, speed made good; the hull's speeds and jets),
-    so GCL learns where a margin matters and how much, but cannot open a hole at the pole.
-
-    Differences from :func:`usv` and why (docs/usv_cost_form.md has the runs):
-
-    * the barrier, not a free network anchored at the goal (``network.barrier_margins=()``
-      gives that one back): every free network learned the keep-clear part differently on each
-      seed (holes beside the pole, a side per seed), and on the report split collided in 1.5 %
-      of the runs with two seeds of four outside 0.7–1.3× the demos' clearance;
-    * feature matching (``gcl.importance_weights=False``): GCL's importance weights rest on one
-      sample here;
-    * the actuator-limit barrier 1000× the hand-written cost's (``network.limit_weight``): the
-      feature-matching cost costs thousands per step on the demos, and at the plain weight the
-      controllers commanded far past the limits, where the clipped hull has no control
-      authority, and diverged;
-    * GCL's learning rate 10⁻³ (:func:`usv`: 3·10⁻³): the barrier's weight grows through the
-      whole run (its gradient keeps its sign), so the rate sets how wide the boat passes; at
-      3·10⁻³ the tuning seeds passed at 1.5–1.7× the demos' clearance, at 10⁻³ at 0.76×."""
+    (``network.prior_residuals``). ``y`` is a 32 × 32 ReLU network on the task features
+    (:meth:`diffgcl.envs.usv.UsvEnv.cost_features`: the pole's saturated clearance and distance
+    ahead, proximity, bearing and closing speed; cross-track and heading error, speed made good;
+    the hull's speeds and jets), anchored at the task's goal (on the course at cruise speed, the
+    pole far astern; :meth:`~diffgcl.envs.usv.UsvEnv.cost_goal_state`), its scale fixed
+    (``shape_only``): what keeps clear of the pole is the network's alone. The cost is updated
+    by feature matching (``gcl.importance_weights=False``: GCL's importance weights rest on one
+    sample here), and its actuator-limit barrier weighs 1000× the hand-written cost's
+    (``network.limit_weight``): the feature-matching cost costs thousands per step on the
+    demos, and at the plain weight the controllers commanded far past the limits, where the
+    clipped hull has no control authority, and diverged. Everything else as :func:`usv`."""
     base = usv("weighted")
     return dataclasses.replace(
         base,
@@ -334,11 +322,8 @@ def usv_neural() -> RGCLConfig:
             shape_only=True,
             prior_residuals=True,
             limit_weight=1000.0,
-            barrier_margins=(2.5, 5.0, 10.0, 20.0),
         ),
-        gcl=dataclasses.replace(
-            base.gcl, importance_weights=False, demos_in_partition=False, learning_rate=1e-3
-        ),
+        gcl=dataclasses.replace(base.gcl, importance_weights=False, demos_in_partition=False),
     )
 
 
