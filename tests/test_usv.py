@@ -509,6 +509,24 @@ def test_cost_features_have_bounded_derivatives_at_the_pole():
     np.testing.assert_allclose(float(usv.cost_features(far)[4]), 1.0, atol=1e-3)  # dead ahead
 
 
+def _usv_network_builder(usv, network_config):
+    """``CostNetwork`` of ``network_config`` on the USV's task features, goal and course
+    residuals, with the remaining fields (mirror, clearance features) left to the caller."""
+    import functools
+
+    from diffgcl.costs.network import CostNetwork
+
+    return functools.partial(
+        CostNetwork,
+        network_config,
+        usv.dX,
+        usv.dU,
+        goal_state=tuple(usv.cost_goal_state().tolist()),
+        feature_map=usv.cost_features,
+        prior_map=usv.cost_prior_residuals,
+    )
+
+
 def _reflect(x: jnp.ndarray) -> jnp.ndarray:
     """The situation reflected across the course line (world y = 0): y, heading, world sway
     velocity, yaw rate, nozzle angle and the pole's y change sign."""
@@ -552,11 +570,9 @@ def test_mirrored_neural_cost_cannot_prefer_a_side():
     and is the mean of the unmirrored network's cost of the two; without it a random network
     tells the two apart (so the check can fail); a mirror needs the option and vice versa."""
     import dataclasses
-    import functools
 
     from diffgcl.algorithms.presets import usv_neural
     from diffgcl.algorithms.rgcl import make_network
-    from diffgcl.costs.network import CostNetwork
 
     usv = make_usv_env(horizon=10)
     base = usv_neural()
@@ -579,15 +595,7 @@ def test_mirrored_neural_cost_cannot_prefer_a_side():
     assert max(gaps) > 1e-3
     quad = net.expand(params, jnp.stack([X[4]] * 3), jnp.zeros((2, usv.dU), X.dtype))
     assert np.all(np.linalg.eigvalsh(np.asarray(quad.l_xx)) > -1e-9)
-    build = functools.partial(
-        CostNetwork,
-        mirrored.network,
-        usv.dX,
-        usv.dU,
-        goal_state=tuple(usv.cost_goal_state().tolist()),
-        feature_map=usv.cost_features,
-        prior_map=usv.cost_prior_residuals,
-    )
+    build = _usv_network_builder(usv, mirrored.network)
     with pytest.raises(ValueError, match="feature_mirror"):
         build()
     with pytest.raises(ValueError, match="16 signs"):
@@ -655,9 +663,6 @@ def test_learned_barrier_cannot_open_a_hole_at_the_pole():
     factor e² per margin of the gate-1 barrier, and its Gauss–Newton expansion is PSD; the
     options without their env part, or on another form, are refused by name."""
     import dataclasses
-    import functools
-
-    from diffgcl.costs.network import CostNetwork
 
     usv, net, params, margins = _barrier_network()
     K = len(margins)
@@ -697,15 +702,7 @@ def test_learned_barrier_cannot_open_a_hole_at_the_pole():
     quad = net.expand(gated, jnp.stack([X[3]] * 3), jnp.zeros((2, usv.dU), X.dtype))
     assert np.all(np.linalg.eigvalsh(np.asarray(quad.l_xx)) > -1e-9)
 
-    build = functools.partial(
-        CostNetwork,
-        net.config,
-        usv.dX,
-        usv.dU,
-        goal_state=tuple(usv.cost_goal_state().tolist()),
-        feature_map=usv.cost_features,
-        prior_map=usv.cost_prior_residuals,
-    )
+    build = _usv_network_builder(usv, net.config)
     with pytest.raises(ValueError, match="clearance_features"):
         build()
     with pytest.raises(ValueError, match=r"distinct indices in \[0, 16\)"):

@@ -382,20 +382,20 @@ def make_network(config: RGCLConfig, env: Env) -> CostNetwork:
         )
     mirror = None
     if net.mirror:
-        signs = _env_part(
+        mirror = _env_tuple(
             env,
             "cost_feature_mirror",
             "network.mirror=True (the features' signs under the task's reflection)",
+            float,
         )
-        mirror = tuple(float(v) for v in signs)
     clearance = None
     if net.barrier_margins:
-        indices = _env_part(
+        clearance = _env_tuple(
             env,
             "cost_clearance_features",
             "network.barrier_margins (the features that read the clearance, the barrier's input)",
+            int,
         )
-        clearance = tuple(int(i) for i in indices)
     return CostNetwork(
         config.network,
         env.dX,
@@ -416,6 +416,12 @@ def _env_part(env: Env, name: str, needed_for: str):
     if not hasattr(env, name):
         raise ValueError(f"env {env.name!r} has no {name} for {needed_for}")
     return getattr(env, name)
+
+
+def _env_tuple(env: Env, name: str, needed_for: str, cast) -> tuple:
+    """:func:`_env_part`'s sequence as a tuple of ``cast`` values (hashable, for the network's
+    static fields)."""
+    return tuple(cast(v) for v in _env_part(env, name, needed_for))
 
 
 def became_non_finite(old, new) -> Array:
