@@ -162,7 +162,8 @@ class CostNetworkConfig:
     on one side whatever the situation; mirrored, the runs still kept to one side and passed
     closer (docs/usv_cost_form.md), so the USV presets leave it off; barrier_margins (the
     ``"neural"`` form): when not empty, the network's term is a learned keep-clear barrier
-    instead of the anchored Gram form (module docstring), one unit per margin, starting at these
+    instead of the anchored Gram form (module docstring; shape_only, squash and a_scale are then
+    unused, and so is the goal state), one unit per margin, starting at these
     clearances (in the clearance feature's units, m for the USV); barrier_softness: the width
     over which each unit's hinge is rounded (same units); barrier_learn_margins: GCL moves the
     margins too (off: they stay where they start, and GCL learns the gate and the term's
