@@ -711,6 +711,8 @@ def test_learned_barrier_cannot_open_a_hole_at_the_pole():
         dataclasses.replace(net.config, form="weighted", shape_only=False, prior_residuals=False)
     with pytest.raises(ValueError, match="must be > 0"):
         dataclasses.replace(net.config, barrier_margins=(5.0, 0.0))
+    with pytest.raises(ValueError, match=r"tuple of margins in metres, \(\) for no"):
+        dataclasses.replace(net.config, barrier_margins=None)
 
 
 def test_learned_barrier_margins_move_only_when_learned():

@@ -213,6 +213,11 @@ class CostNetworkConfig:
             raise ValueError(
                 f"CostNetworkConfig: squash {self.squash!r}; choose one of {sorted(SQUASHES)}"
             )
+        if not isinstance(self.barrier_margins, tuple):
+            raise ValueError(
+                "CostNetworkConfig: barrier_margins is a tuple of margins in metres, () for no "
+                f"learned barrier; got {self.barrier_margins!r}"
+            )
         if any(not m > 0.0 for m in self.barrier_margins) or not self.barrier_softness > 0.0:
             raise ValueError(
                 "CostNetworkConfig: barrier_margins and barrier_softness must be > 0, got "
