@@ -334,15 +334,25 @@ def test_action_limit_residuals_are_the_expert_costs_limit_barrier():
     np.testing.assert_allclose(float(r @ r), expected, rtol=1e-4)
 
 
+def _free_network_preset():
+    """``usv_neural`` with the free network in the learned barrier's place (``--set
+    network.barrier_margins=()``)."""
+    import dataclasses
+
+    from diffgcl.algorithms.presets import usv_neural
+
+    base = usv_neural()
+    return dataclasses.replace(base, network=dataclasses.replace(base.network, barrier_margins=()))
+
+
 def test_neural_cost_is_zero_at_the_goal_and_reads_bounded_features():
     """The neural form (``‖A (y(z) − y(z*))‖²`` on the task features): zero at the env's goal
     state and at any state whose features equal the goal's (the pole further astern), positive
     elsewhere, with a PSD Gauss-Newton expansion; the features stay bounded far from the pole."""
-    from diffgcl.algorithms.presets import usv_neural
     from diffgcl.algorithms.rgcl import make_network
 
     usv = make_usv_env(horizon=10)
-    net = make_network(usv_neural(), usv)
+    net = make_network(_free_network_preset(), usv)
     params = net.init(jax.random.PRNGKey(0))
     params = params.replace(norm=net.fit_normaliser(usv.initial_states()))
     goal = usv.cost_goal_state()
@@ -360,7 +370,7 @@ def test_neural_cost_is_zero_at_the_goal_and_reads_bounded_features():
     with pytest.raises(ValueError, match="goal_state"):
         from diffgcl.costs.network import CostNetwork
 
-        CostNetwork(usv_neural().network, usv.dX, usv.dU)
+        CostNetwork(_free_network_preset().network, usv.dX, usv.dU)
 
 
 def test_shape_only_neural_cost_has_a_fixed_scale():
@@ -369,11 +379,10 @@ def test_shape_only_neural_cost_has_a_fixed_scale():
     never exceeds ``‖Â‖_F² · max‖tanh y − tanh y*‖² = (a_scale² F)(4F)`` per step."""
     import dataclasses
 
-    from diffgcl.algorithms.presets import usv_neural
     from diffgcl.algorithms.rgcl import make_network
 
     usv = make_usv_env(horizon=10)
-    config = usv_neural()
+    config = _free_network_preset()
     config = dataclasses.replace(
         config, network=dataclasses.replace(config.network, shape_only=True, prior_residuals=False)
     )
@@ -444,12 +453,11 @@ def test_neural_cost_with_prior_residuals_weighs_the_course_beside_the_network()
     refused."""
     import dataclasses
 
-    from diffgcl.algorithms.presets import usv_neural
     from diffgcl.algorithms.rgcl import make_network
     from diffgcl.costs.network import CostNetwork
 
     usv = make_usv_env(horizon=10)
-    base = usv_neural()
+    base = _free_network_preset()
     shape = dataclasses.replace(base.network, shape_only=True, prior_residuals=False)
     prior = dataclasses.replace(shape, prior_residuals=True)
     net = make_network(dataclasses.replace(base, network=prior), usv)
@@ -571,11 +579,10 @@ def test_mirrored_neural_cost_cannot_prefer_a_side():
     tells the two apart (so the check can fail); a mirror needs the option and vice versa."""
     import dataclasses
 
-    from diffgcl.algorithms.presets import usv_neural
     from diffgcl.algorithms.rgcl import make_network
 
     usv = make_usv_env(horizon=10)
-    base = usv_neural()
+    base = _free_network_preset()
     mirrored = dataclasses.replace(base, network=dataclasses.replace(base.network, mirror=True))
     net, plain = make_network(mirrored, usv), make_network(base, usv)
     X = usv.initial_states()
@@ -630,10 +637,9 @@ def _barrier_network(**network):
 
     usv = make_usv_env(horizon=10)
     base = usv_neural()
-    margins = (2.5, 5.0, 10.0, 20.0)
-    cfg = dataclasses.replace(
-        base, network=dataclasses.replace(base.network, barrier_margins=margins, **network)
-    )
+    margins = base.network.barrier_margins  # the preset's learned barrier
+    assert margins == (2.5, 5.0, 10.0, 20.0)
+    cfg = dataclasses.replace(base, network=dataclasses.replace(base.network, **network))
     net = make_network(cfg, usv)
     X = usv.initial_states()
     params = net.init(jax.random.PRNGKey(2))
