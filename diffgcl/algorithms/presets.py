@@ -319,9 +319,11 @@ def usv_neural() -> RGCLConfig:
       clearance (4 % collisions).
 
     On fresh seeds 44–47 this form collided in none of 1024 held-out runs where the free network
-    (``--set network.barrier_margins=()``, a network ``‖Â (tanh y(z) − tanh y(z*))‖²`` in the
-    barrier's place, anchored at the task's goal) collided in 2.6 % and diverged on two seeds of
-    four; it passes closer than the demos (0.3–0.9× their clearance on six untuned seeds).
+    collided in 2.6 % and diverged on two seeds of four; it passes closer than the demos
+    (0.3–0.9× their clearance on six untuned seeds). The free network, as measured: ``--set
+    network.barrier_margins=() --set gcl.learning_rate=0.003 --set gps.min_step_mult=0.01`` (a
+    network ``‖Â (tanh y(z) − tanh y(z*))‖²`` in the barrier's place, anchored at the task's
+    goal).
     Everything else as :func:`usv`."""
     base = usv("weighted")
     return dataclasses.replace(
