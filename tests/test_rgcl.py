@@ -233,6 +233,20 @@ def test_presets_and_overrides():
         assert m.gps.init_var == 0.01 and m.network == base.network
 
 
+def test_every_preset_survives_a_json_round_trip():
+    """A run folder's config.json read back (``config_from_dict``) is the config that was
+    written, for every preset: JSON turns tuples (hidden layers, the learned barrier's margins)
+    into lists, and a list is not a valid config field."""
+    import json
+
+    from diffgcl.algorithms.presets import PRESETS, get_preset
+    from diffgcl.algorithms.runner import config_from_dict
+
+    for name in PRESETS:
+        config = get_preset(name)
+        assert config_from_dict(json.loads(json.dumps(config.to_dict()))) == config, name
+
+
 @pytest.mark.slow
 def _run_arm_experiment(tmp_path, *flags: str) -> dict:
     """``experiments/arm_rgcl.py --fast`` (8 tuning and 8 held-out seeds, 10 iterations) with

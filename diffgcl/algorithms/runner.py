@@ -515,22 +515,26 @@ def read_run_env(run_dir: Path) -> dict:
     return json.loads(path.read_text()) if path.is_file() else {}
 
 
+def _with_tuples(d: dict) -> dict:
+    """``d`` with its lists made tuples: JSON has no tuples, and every sequence field of the
+    configs is one (hashable, as a jitted program's static argument must be)."""
+    return {k: tuple(v) if isinstance(v, list) else v for k, v in d.items()}
+
+
 def config_from_dict(d: dict):
-    """Inverse of ``RGCLConfig.to_dict`` (for run folders)."""
+    """Inverse of ``RGCLConfig.to_dict`` (for run folders), also after a JSON round trip."""
     from diffgcl.algorithms.gps import GPSConfig
     from diffgcl.algorithms.rgcl import RGCLConfig
     from diffgcl.costs.gcl import GCLConfig
     from diffgcl.costs.network import CostNetworkConfig
 
     d = dict(d)
-    net = dict(d.pop("network"))
-    net["hidden"] = tuple(net["hidden"])
     return RGCLConfig(
-        gps=GPSConfig(**d.pop("gps")),
-        network=CostNetworkConfig(**net),
-        gcl=GCLConfig(**d.pop("gcl")),
+        gps=GPSConfig(**_with_tuples(d.pop("gps"))),
+        network=CostNetworkConfig(**_with_tuples(d.pop("network"))),
+        gcl=GCLConfig(**_with_tuples(d.pop("gcl"))),
         policy=policy_settings_from_dict(d.pop("policy", None)),
-        **d,
+        **_with_tuples(d),
     )
 
 
@@ -544,9 +548,11 @@ def policy_settings_from_dict(d: dict | None):
     from diffgcl.policies.network import PolicyConfig
 
     d = dict(d)
-    net = dict(d.pop("network"))
-    net["hidden"] = tuple(net["hidden"])
-    return PolicySettings(network=PolicyConfig(**net), s_step=SStepConfig(**d.pop("s_step")), **d)
+    return PolicySettings(
+        network=PolicyConfig(**_with_tuples(d.pop("network"))),
+        s_step=SStepConfig(**_with_tuples(d.pop("s_step"))),
+        **_with_tuples(d),
+    )
 
 
 class RunFolderError(ValueError):
