@@ -272,18 +272,21 @@ def small_mdgps(env, iterations: int, s_steps: int, **policy):
 
 
 def test_mdgps_step_rules():
-    """``"global"``: one KL step multiplier for both conditions at every iteration;
-    ``"classic"``: each condition adapts its own, so from two different starts they part after
-    the first adaptation (the same first iteration, which keeps the initial multiplier)."""
+    """``"global"`` and ``"geometric"``: one KL step multiplier for both conditions at every
+    iteration; ``"classic"``: each condition adapts its own, so from two different starts they
+    part after the first adaptation (the same first iteration, which keeps the initial
+    multiplier). The two shared rules agree until the conditions' estimates differ, then part."""
     env = ObservedPointMass()
     steps = {}
-    for rule in ("global", "classic"):
+    for rule in ("global", "geometric", "classic"):
         md = small_mdgps(env, 4, 20, step_rule=rule)
         _, m = jax.jit(md.train)(jax.random.PRNGKey(2))
         steps[rule] = np.asarray(m.gps.step_mult)  # [iterations, C]
-    np.testing.assert_array_equal(steps["global"][:, 0], steps["global"][:, 1])
-    np.testing.assert_array_equal(steps["global"][0], steps["classic"][0])
+    for rule in ("global", "geometric"):
+        np.testing.assert_array_equal(steps[rule][:, 0], steps[rule][:, 1])
+        np.testing.assert_array_equal(steps[rule][0], steps["classic"][0])
     assert np.any(np.abs(steps["classic"][1:, 0] - steps["classic"][1:, 1]) > 1e-6), steps
+    assert np.any(np.abs(steps["geometric"][1:, 0] - steps["global"][1:, 0]) > 1e-6), steps
     with pytest.raises(ValueError, match="step_rule 'shared'"):
         PolicySettings(step_rule="shared")
 

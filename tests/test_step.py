@@ -8,7 +8,12 @@ import pytest
 from lqr_problems import random_problem
 
 from diffgcl.control.lqr import backward_pass, forward_pass
-from diffgcl.control.step import adapt_step_mult, laplace_cost, step_multiplier
+from diffgcl.control.step import (
+    adapt_step_mult,
+    geometric_step_multiplier,
+    laplace_cost,
+    step_multiplier,
+)
 
 # (J_prev, J_pred, J_act, expected multiplier), worked by hand:
 # pred = J_prev − J_pred, act = J_prev − J_act, mult = pred / (2·max(1e-4, pred − act)).
@@ -34,6 +39,24 @@ def test_adapt_step_mult_clips_and_vmaps():
     new = jax.jit(jax.vmap(adapt_step_mult))(step, J_prev, J_pred, J_act)
     # 1·1, 3·2, 0.02/3 -> 0.01 (floor), 4·5 -> 10 (cap), 1·5, 0.05·0.1 -> 0.01, 0.5·0.1
     np.testing.assert_allclose(new, [1.0, 6.0, 0.01, 10.0, 5.0, 0.01, 0.05])
+
+
+def test_geometric_step_multiplier_weighs_every_condition_alike():
+    """Two conditions, multipliers 5 (pred 4, act 4) and 0.2 (pred 400, act −600: 400/2000),
+    the second's estimates 10⁵ times the first's. Averaging the estimates (GPS's global rule)
+    gives pred 202, act −298: 202/1000 = 0.202, the second condition's; the geometric mean of
+    the two multipliers is √(5·0.2) = 1. A condition whose estimates are not finite is left
+    out; none finite: NaN (the caller keeps its step)."""
+    J_prev = jnp.array([10.0, 1e6])
+    J_pred = jnp.array([6.0, 1e6 - 400.0])
+    J_act = jnp.array([6.0, 1e6 + 600.0])
+    np.testing.assert_allclose(step_multiplier(J_prev, J_pred, J_act), [5.0, 0.2])
+    averaged = step_multiplier(J_prev.mean(), J_pred.mean(), J_act.mean())
+    assert float(averaged) == pytest.approx(0.202)
+    assert float(jax.jit(geometric_step_multiplier)(J_prev, J_pred, J_act)) == pytest.approx(1.0)
+    with_nan = [jnp.append(J, jnp.nan) for J in (J_prev, J_pred, J_act)]
+    assert float(geometric_step_multiplier(*with_nan)) == pytest.approx(1.0)
+    assert np.isnan(float(geometric_step_multiplier(*(jnp.full(2, jnp.nan),) * 3)))
 
 
 def test_laplace_cost_matches_monte_carlo():

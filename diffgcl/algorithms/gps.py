@@ -54,7 +54,7 @@ from diffgcl.control.dual import c_step
 from diffgcl.control.ilqr import zero_expansion
 from diffgcl.control.init import init_controller
 from diffgcl.control.lqr import controller_entropy, forward_pass
-from diffgcl.control.step import adapt_step_mult, laplace_cost
+from diffgcl.control.step import adapt_step_mult, geometric_step_multiplier, laplace_cost
 from diffgcl.costs.expansion import about_origin, expand_cost_samples, trajectory_cost
 from diffgcl.sim.simulator import Simulator
 from diffgcl.types import (
@@ -238,7 +238,7 @@ class GPSPhases(NamedTuple):
     fit_samples(X, U, mean_X, A=None, B=None) -> GPSSamples (the same from given samples
     [C, N, ...], e.g. drawn from a global policy); expand(cost, samples) -> QuadraticCost [C]
     about the origin (the GPS sample-averaged expansion of ``cost``, a residual function when
-    ``config.gauss_newton``); adapt_step(state, samples, quad, current=None, shared=False) ->
+    ``config.gauss_newton``); adapt_step(state, samples, quad, current=None, rule="classic") ->
     step_mult [C] (from the second iteration on; ``quad`` is the expansion of the cost the step is
     judged with); inner(state, samples, quad, step_mult, anchor=None) -> (GPSState, GPSMetrics)
     (C-step with ε = kl_step·step_mult·T and the metrics); autodiff: the dynamics come from the
@@ -249,8 +249,9 @@ class GPSPhases(NamedTuple):
     ``J_prev`` (that controller), ``J_pred`` (the controller the last C-step produced, both under
     the previous dynamics and cost) and ``J_act`` (the current controller under the new ones).
     MDGPS (Montgomery & Levine 2016; :mod:`diffgcl.algorithms.mdgps`) passes the global policy
-    linearised at the samples as ``anchor`` and as ``current``, and ``shared=True``: the three
-    estimates are averaged over the conditions and one step size serves them all. The state keeps
+    linearised at the samples as ``anchor`` and as ``current``, and a shared ``rule``: one step
+    size serves all conditions, from their averaged estimates (``"global"``, GPS's) or the
+    geometric mean of their own multipliers (``"geometric"``). The state keeps
     the last anchor as ``prev_controller``, so ``J_prev`` is the previous policy linearisation
     there, as in GPS's ``AlgorithmMDGPS``.
     """
@@ -495,26 +496,33 @@ def make_gps_phases(
         samples: GPSSamples,
         quad: QuadraticCost,
         current: LinearGaussianController | None = None,
-        shared: bool = False,
+        rule: str = "classic",
     ) -> Array:
         """New step_mult [C]; skipped (kept) on the first iteration and where not finite.
         ``current``: the controllers [C] judged by ``J_act`` (default ``state.controller``);
-        ``shared``: average the estimates over the conditions, one step for all (MDGPS)."""
+        ``rule``: ``"classic"`` each condition from its own estimates; one step for all
+        (MDGPS) from the estimates averaged over the conditions (``"global"``) or from the
+        geometric mean of the conditions' multipliers (``"geometric"``;
+        :func:`diffgcl.control.step.geometric_step_multiplier`)."""
         current = state.controller if current is None else current
         J = jax.vmap(laplace_estimates, in_axes=(state_axes, 0, 0, 0))(
             state, samples, quad, current
         )  # [C, 3]
-        if shared:
+        if rule == "global":
             J = jnp.broadcast_to(J.mean(axis=0), J.shape)
-        adapted = adapt_step_mult(
-            state.step_mult,
-            J[:, 0],
-            J[:, 1],
-            J[:, 2],
-            min_step_mult=config.min_step_mult,
-            max_step_mult=config.max_step_mult,
-        )
-        if shared:  # one multiplier: the conditions' step_mult agree from the first on
+        if rule == "geometric":
+            mult = geometric_step_multiplier(J[:, 0], J[:, 1], J[:, 2])
+            adapted = jnp.clip(state.step_mult * mult, config.min_step_mult, config.max_step_mult)
+        else:
+            adapted = adapt_step_mult(
+                state.step_mult,
+                J[:, 0],
+                J[:, 1],
+                J[:, 2],
+                min_step_mult=config.min_step_mult,
+                max_step_mult=config.max_step_mult,
+            )
+        if rule != "classic":  # one multiplier: the conditions' step_mult agree from the first on
             adapted = jnp.broadcast_to(adapted.mean(), adapted.shape)
         keep = (state.iteration == 0) | ~jnp.isfinite(adapted)
         return jnp.where(keep, state.step_mult, adapted)

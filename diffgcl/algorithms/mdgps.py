@@ -67,7 +67,7 @@ from diffgcl.sim.rollout import smooth_noise
 from diffgcl.sim.simulator import Simulator
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey, Trajectory
 
-STEP_RULES = ("global", "classic")
+STEP_RULES = ("global", "geometric", "classic")
 
 
 @dataclass(frozen=True)
@@ -83,7 +83,9 @@ class PolicySettings:
     step_rule: how the C-step's KL step adapts — ``"global"``: one multiplier for all conditions
     from their averaged cost estimates; ``"classic"``: each condition its own, from its own
     estimates (GPS's two MDGPS rules; under ``"global"`` one runaway condition's estimates,
-    orders of magnitude above the rest, set every condition's step).
+    orders of magnitude above the rest, set every condition's step); ``"geometric"``: one
+    multiplier for all, the geometric mean of the conditions' own (each condition's vote
+    bounded by the rule's clip, so no one condition decides).
     """
 
     network: PolicyConfig = field(default_factory=PolicyConfig)
@@ -98,11 +100,6 @@ class PolicySettings:
             raise ValueError(
                 f"PolicySettings: step_rule {self.step_rule!r}; choose one of {STEP_RULES}"
             )
-
-    @property
-    def shared_step(self) -> bool:
-        """One KL step multiplier for all conditions (``step_rule="global"``)."""
-        return self.step_rule == "global"
 
 
 @struct.dataclass
@@ -535,7 +532,7 @@ def make_mdgps(
         anchor = policy_phases.linearise(state.policy, sims.O_clean, sims.J_obs, sims.X)
         quad = phases.expand(cost, samples)
         step_mult = phases.adapt_step(
-            state.gps, samples, quad, current=anchor, shared=config.policy.shared_step
+            state.gps, samples, quad, current=anchor, rule=config.policy.step_rule
         )
         gps, gps_metrics = phases.inner(state.gps, samples, quad, step_mult, anchor=anchor)
         policy, s_metrics = policy_phases.s_step(

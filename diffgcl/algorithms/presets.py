@@ -313,10 +313,15 @@ def usv_neural() -> RGCLConfig:
       the feature-matching cost costs thousands per step on the demos, and at the plain weight
       the controllers commanded far past the limits, where the clipped hull has no control
       authority, and diverged;
-    * the KL step's multiplier is floored at 0.1 (``gps.min_step_mult``; GPS's 0.01): while the
-      barrier's weight grows, the step rule's estimates swing each step to ×5 or ×0.1, and at
-      the floor of 0.01 two report seeds of four never left it and passed at 0.2× the demos'
-      clearance (4 % collisions).
+    * the KL step's shared multiplier is the geometric mean of the conditions' own
+      (``policy.step_rule="geometric"``; GPS's global rule averages their estimates): the
+      policy's linearisation, which the step is judged on, runs away to 10⁶–10⁷ on a few
+      conditions in some iterations, and under the global rule those few swung every
+      condition's step by ×0.1 and then ×5 (11 of 26 adaptations on the tuning pair, none
+      under the geometric mean);
+    * the multiplier is floored at 0.1 (``gps.min_step_mult``; GPS's 0.01): at 0.01 two report
+      seeds of four never left the floor and passed at 0.2× the demos' clearance (4 %
+      collisions).
 
     On fresh seeds 44–47 this form collided in none of 1024 held-out runs where the free network
     collided in 2.6 % and diverged on two seeds of four; it passes closer than the demos
@@ -329,6 +334,7 @@ def usv_neural() -> RGCLConfig:
     return dataclasses.replace(
         base,
         gps=dataclasses.replace(base.gps, min_step_mult=0.1),
+        policy=dataclasses.replace(base.policy, step_rule="geometric"),
         network=CostNetworkConfig(
             form="neural",
             features="env",

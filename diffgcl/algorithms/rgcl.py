@@ -729,8 +729,8 @@ def make_train(config: RGCLConfig, env: Env) -> RGCL:
         return samples, anchor, anchor if settings.sample_on_policy else gps.controller
 
     def adapt(state: RGCLState, gps: GPSState, samples, quad, anchor) -> Array:
-        shared = anchor is not None and settings.shared_step
-        step = phases.adapt_step(gps, samples, quad, current=anchor, shared=shared)
+        rule = "classic" if anchor is None else settings.step_rule
+        step = phases.adapt_step(gps, samples, quad, current=anchor, rule=rule)
         return cap_step(state, step)
 
     def s_step(policy, key: PRNGKey, samples: GPSSamples, gps: GPSState, params, sims):

@@ -12,6 +12,12 @@ next step:
 Predicted improvement ``pred = J_prev − J_pred``, actual ``act = J_prev − J_act``;
 ``mult = pred / (2·max(1e-4, pred − act))`` clipped to [0.1, 5]; ``step_mult ← clip(step_mult·mult,
 0.01, 10)``: a model that predicted well (act ≈ pred) gets a larger step, a poor one a smaller one.
+
+One multiplier for several conditions comes either from their averaged estimates (GPS's global
+MDGPS rule: a condition whose estimates are orders of magnitude above the rest decides alone) or
+as the geometric mean of the conditions' own multipliers (:func:`geometric_step_multiplier`: each
+condition's vote is bounded by the clip, so one runaway condition moves the shared step by at
+most a factor 50^(1/C)).
 """
 
 from __future__ import annotations
@@ -60,6 +66,15 @@ def step_multiplier(
     actual = J_prev - J_act
     mult = predicted / (2.0 * jnp.maximum(1e-4, predicted - actual))
     return jnp.clip(mult, min_mult, max_mult)
+
+
+def geometric_step_multiplier(J_prev: Array, J_pred: Array, J_act: Array) -> Array:
+    """The geometric mean over conditions [C] of their clipped :func:`step_multiplier`; a
+    condition whose multiplier is not finite is left out (all of them: NaN). Returns a scalar."""
+    log_mult = jnp.log(step_multiplier(J_prev, J_pred, J_act))
+    finite = jnp.isfinite(log_mult)
+    total = jnp.sum(jnp.where(finite, log_mult, 0.0))
+    return jnp.exp(total / jnp.where(finite.any(), finite.sum(), jnp.nan))
 
 
 def adapt_step_mult(
