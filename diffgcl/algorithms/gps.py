@@ -54,7 +54,12 @@ from diffgcl.control.dual import c_step
 from diffgcl.control.ilqr import zero_expansion
 from diffgcl.control.init import init_controller
 from diffgcl.control.lqr import controller_entropy, forward_pass
-from diffgcl.control.step import adapt_step_mult, geometric_step_multiplier, laplace_cost
+from diffgcl.control.step import (
+    STEP_RULES,
+    adapt_step_mult,
+    geometric_step_multiplier,
+    laplace_cost,
+)
 from diffgcl.costs.expansion import about_origin, expand_cost_samples, trajectory_cost
 from diffgcl.sim.simulator import Simulator
 from diffgcl.types import (
@@ -504,6 +509,8 @@ def make_gps_phases(
         (MDGPS) from the estimates averaged over the conditions (``"global"``) or from the
         geometric mean of the conditions' multipliers (``"geometric"``;
         :func:`diffgcl.control.step.geometric_step_multiplier`)."""
+        if rule not in STEP_RULES:
+            raise ValueError(f"adapt_step: rule {rule!r}; choose one of {STEP_RULES}")
         current = state.controller if current is None else current
         J = jax.vmap(laplace_estimates, in_axes=(state_axes, 0, 0, 0))(
             state, samples, quad, current

@@ -53,6 +53,7 @@ from diffgcl.algorithms.gps import (
     SampleRequest,
     make_gps_phases,
 )
+from diffgcl.control.step import STEP_RULES
 from diffgcl.costs.expansion import trajectory_cost
 from diffgcl.policies.mdgps import (
     PolicyState,
@@ -66,8 +67,6 @@ from diffgcl.policies.network import GaussianPolicy, PolicyConfig, fit_obs_norma
 from diffgcl.sim.rollout import smooth_noise
 from diffgcl.sim.simulator import Simulator
 from diffgcl.types import Array, CostFn, Env, LinearGaussianController, PRNGKey, Trajectory
-
-STEP_RULES = ("global", "geometric", "classic")
 
 
 @dataclass(frozen=True)

@@ -26,6 +26,10 @@ import jax.numpy as jnp
 
 from diffgcl.types import Array, QuadraticCost, TrajectoryDistribution
 
+# How several conditions' steps adapt: each its own ("classic"), or one for all from their
+# averaged estimates ("global") or the geometric mean of their multipliers ("geometric").
+STEP_RULES = ("global", "geometric", "classic")
+
 
 def laplace_cost_per_step(traj_dist: TrajectoryDistribution, cost: QuadraticCost) -> Array:
     """``E[l_t(z_t)]`` of a quadratic expansion *about the origin* under Gaussian marginals.
