@@ -315,7 +315,7 @@ def usv_neural() -> RGCLConfig:
       authority, and diverged;
     * the KL step's shared multiplier is the geometric mean of the conditions' own
       (``policy.step_rule="geometric"``; GPS's global rule averages their estimates): the
-      policy's linearisation, which the step is judged on, runs away to 10⁶–10⁷ on a few
+      policy's linearisation, which the step is judged on, runs away to 10⁵–10⁸ on a few
       conditions in some iterations, and under the global rule those few swung every
       condition's step by ×0.1 and then ×5 (11 of 26 adaptations on the tuning pair, none
       under the geometric mean);
