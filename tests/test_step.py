@@ -57,6 +57,12 @@ def test_geometric_step_multiplier_weighs_every_condition_alike():
     with_nan = [jnp.append(J, jnp.nan) for J in (J_prev, J_pred, J_act)]
     assert float(geometric_step_multiplier(*with_nan)) == pytest.approx(1.0)
     assert np.isnan(float(geometric_step_multiplier(*(jnp.full(2, jnp.nan),) * 3)))
+    # The shared rules through adapt_step_mult: one multiplier and one step for both.
+    for rule, mult in (("global", 0.202), ("geometric", 1.0), ("classic", None)):
+        new = adapt_step_mult(jnp.array([1.0, 1.0]), J_prev, J_pred, J_act, rule=rule)
+        np.testing.assert_allclose(new, [5.0, 0.2] if mult is None else [mult, mult], rtol=1e-6)
+    with pytest.raises(ValueError, match="rule 'shared'"):
+        adapt_step_mult(jnp.ones(2), J_prev, J_pred, J_act, rule="shared")
 
 
 def test_laplace_cost_matches_monte_carlo():

@@ -54,12 +54,7 @@ from diffgcl.control.dual import c_step
 from diffgcl.control.ilqr import zero_expansion
 from diffgcl.control.init import init_controller
 from diffgcl.control.lqr import controller_entropy, forward_pass
-from diffgcl.control.step import (
-    STEP_RULES,
-    adapt_step_mult,
-    geometric_step_multiplier,
-    laplace_cost,
-)
+from diffgcl.control.step import adapt_step_mult, laplace_cost
 from diffgcl.costs.expansion import about_origin, expand_cost_samples, trajectory_cost
 from diffgcl.sim.simulator import Simulator
 from diffgcl.types import (
@@ -509,28 +504,19 @@ def make_gps_phases(
         (MDGPS) from the estimates averaged over the conditions (``"global"``) or from the
         geometric mean of the conditions' multipliers (``"geometric"``;
         :func:`diffgcl.control.step.geometric_step_multiplier`)."""
-        if rule not in STEP_RULES:
-            raise ValueError(f"adapt_step: rule {rule!r}; choose one of {STEP_RULES}")
         current = state.controller if current is None else current
         J = jax.vmap(laplace_estimates, in_axes=(state_axes, 0, 0, 0))(
             state, samples, quad, current
         )  # [C, 3]
-        if rule == "global":
-            J = jnp.broadcast_to(J.mean(axis=0), J.shape)
-        if rule == "geometric":
-            mult = geometric_step_multiplier(J[:, 0], J[:, 1], J[:, 2])
-            adapted = jnp.clip(state.step_mult * mult, config.min_step_mult, config.max_step_mult)
-        else:
-            adapted = adapt_step_mult(
-                state.step_mult,
-                J[:, 0],
-                J[:, 1],
-                J[:, 2],
-                min_step_mult=config.min_step_mult,
-                max_step_mult=config.max_step_mult,
-            )
-        if rule != "classic":  # one multiplier: the conditions' step_mult agree from the first on
-            adapted = jnp.broadcast_to(adapted.mean(), adapted.shape)
+        adapted = adapt_step_mult(
+            state.step_mult,
+            J[:, 0],
+            J[:, 1],
+            J[:, 2],
+            rule=rule,
+            min_step_mult=config.min_step_mult,
+            max_step_mult=config.max_step_mult,
+        )
         keep = (state.iteration == 0) | ~jnp.isfinite(adapted)
         return jnp.where(keep, state.step_mult, adapted)
 

@@ -87,9 +87,25 @@ def adapt_step_mult(
     J_pred: Array,
     J_act: Array,
     *,
+    rule: str = "classic",
     min_step_mult: float = 0.01,
     max_step_mult: float = 10.0,
 ) -> Array:
-    """New ``step_mult = clip(step_mult · step_multiplier(...), min_step_mult, max_step_mult)``."""
-    mult = step_multiplier(J_prev, J_pred, J_act)
-    return jnp.clip(step_mult * mult, min_step_mult, max_step_mult)
+    """New ``step_mult = clip(step_mult · mult, min_step_mult, max_step_mult)``.
+
+    ``rule`` (:data:`STEP_RULES`): ``"classic"``, each entry's own :func:`step_multiplier`; the
+    shared rules read the last axis as the conditions [C] and give them one multiplier, from
+    their averaged estimates (``"global"``) or :func:`geometric_step_multiplier`
+    (``"geometric"``), and one step (the mean of the conditions' adapted steps)."""
+    if rule not in STEP_RULES:
+        raise ValueError(f"adapt_step_mult: rule {rule!r}; choose one of {STEP_RULES}")
+    if rule == "global":
+        mult = step_multiplier(J_prev.mean(-1), J_pred.mean(-1), J_act.mean(-1))[..., None]
+    elif rule == "geometric":
+        mult = geometric_step_multiplier(J_prev, J_pred, J_act)[..., None]
+    else:
+        mult = step_multiplier(J_prev, J_pred, J_act)
+    adapted = jnp.clip(step_mult * mult, min_step_mult, max_step_mult)
+    if rule == "classic":
+        return adapted
+    return jnp.broadcast_to(adapted.mean(-1, keepdims=True), adapted.shape)
